@@ -1,0 +1,88 @@
+"""Actions a skill emits and the safety envelope they are checked against."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Self
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class ControlMode(StrEnum):
+    """How an action's values are interpreted by the HAL."""
+
+    JOINT_POSITION = "joint_position"
+    JOINT_VELOCITY = "joint_velocity"
+    JOINT_TORQUE = "joint_torque"
+    EE_POSE = "ee_pose"
+    EE_DELTA = "ee_delta"
+
+
+class Action(BaseModel):
+    """A command for the robot: ``targets[k][j]`` is the value for joint ``j`` at step ``k``.
+
+    ``horizon`` (the number of rows) is 1 for a single command and larger for an action
+    chunk; the HAL applies row 0. Non-finite values are representable on purpose so that
+    the safety client, not the constructor, rejects them and the rejection is traced.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    control_mode: ControlMode = ControlMode.JOINT_POSITION
+    joint_names: list[str]
+    targets: list[list[float]] = Field(min_length=1)
+    confidence: list[float] | None = None
+    stamp_ns: int = Field(default=0, ge=0)
+    skill_id: str | None = None
+
+    @model_validator(mode="after")
+    def _rectangular(self) -> Self:
+        n = len(self.joint_names)
+        for k, row in enumerate(self.targets):
+            if len(row) != n:
+                raise ValueError(f"targets[{k}] has {len(row)} values for {n} joint names")
+        return self
+
+    @property
+    def horizon(self) -> int:
+        """Number of steps in the action (1 unless it is a chunk)."""
+        return len(self.targets)
+
+    @property
+    def first(self) -> list[float]:
+        """The step the HAL applies now."""
+        return self.targets[0]
+
+
+class SafetyMode(StrEnum):
+    """What the safety client does with an action outside the envelope."""
+
+    CLAMP = "clamp"
+    REJECT = "reject"
+
+
+class SafetyEnvelope(BaseModel):
+    """Limits an action must respect beyond the robot's own joint limits.
+
+    Attributes:
+        max_joint_speed_factor: Fraction of each joint's velocity limit allowed per tick.
+        workspace_min / workspace_max: Optional Cartesian box (metres, base frame) for the end effector.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    max_ee_speed_m_s: float = Field(default=0.5, gt=0)
+    max_force_n: float = Field(default=50.0, gt=0)
+    max_joint_speed_factor: float = Field(default=1.0, gt=0, le=1.0)
+    workspace_min: tuple[float, float, float] | None = None
+    workspace_max: tuple[float, float, float] | None = None
+
+    @model_validator(mode="after")
+    def _box(self) -> Self:
+        if (self.workspace_min is None) != (self.workspace_max is None):
+            raise ValueError("workspace_min and workspace_max must be given together")
+        if self.workspace_min is not None and self.workspace_max is not None:
+            for axis, lo, hi in zip("xyz", self.workspace_min, self.workspace_max, strict=True):
+                if lo >= hi:
+                    raise ValueError(f"workspace_min.{axis} ({lo}) must be below workspace_max.{axis} ({hi})")
+        return self

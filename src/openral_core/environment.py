@@ -1,0 +1,194 @@
+"""The deployment file: ``RobotEnvironment`` and the blocks it is made of."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from pathlib import Path
+from typing import Any, Self
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from openral_core.actions import SafetyMode
+from openral_core.config import load_model_yaml
+from openral_core.frames import FrameEncoding
+
+_ID_PATTERN = r"^[A-Za-z][A-Za-z0-9_\-]*$"
+
+
+class SensorReaderBackend(StrEnum):
+    """Capture backend of one sensor; each is a plugin in ``openral.sensor_backends``."""
+
+    OPENCV_THREAD = "opencv_thread"
+    GSTREAMER = "gstreamer"
+    ROS2_IMAGE = "ros2_image"
+    MUJOCO_CAMERA = "mujoco_camera"
+    HOLOSCAN = "holoscan"  # reserved: no implementation yet
+
+
+class DeadlineOverrunPolicy(StrEnum):
+    """What the runner does with an action that is ready after its tick's deadline.
+
+    ``warn`` sends it and counts the miss; ``drop`` withholds it; ``raise`` withholds it,
+    leaves the robot holding, stops the loop and raises ``ROSDeadlineMissed``.
+    """
+
+    WARN = "warn"
+    DROP = "drop"
+    RAISE = "raise"
+
+
+class _Block(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SensorReaderConfig(_Block):
+    """One sensor of the deployment.
+
+    ``publish_to_ros`` and ``publish_topic`` go together: a ROS tee needs a topic, and a
+    topic means nothing without the tee.
+    """
+
+    sensor_id: str = Field(pattern=_ID_PATTERN)
+    backend: SensorReaderBackend = SensorReaderBackend.OPENCV_THREAD
+    required: bool = True
+    max_age_ms: float = Field(default=100.0, gt=0)
+    fps: float = Field(default=30.0, gt=0)
+    width: int | None = Field(default=None, ge=1)
+    height: int | None = Field(default=None, ge=1)
+    encoding: FrameEncoding = FrameEncoding.BGR8
+    backend_params: dict[str, Any] = Field(default_factory=dict)
+    publish_to_ros: bool = False
+    publish_topic: str | None = None
+    publish_rate_hz: float | None = Field(default=None, gt=0)
+
+    @model_validator(mode="after")
+    def _ros_tee(self) -> Self:
+        if self.publish_to_ros and not self.publish_topic:
+            raise ValueError("publish_to_ros is true but publish_topic is empty: name the ROS topic to publish")
+        if self.publish_topic and not self.publish_to_ros:
+            raise ValueError("publish_topic is set but publish_to_ros is false: set publish_to_ros: true")
+        return self
+
+
+class HalConfig(_Block):
+    """Which robot and which adapter drives it.
+
+    ``robot_id`` names a manifest (``robots/<robot_id>/robot.yaml``); ``adapter`` names a
+    plugin in ``openral.hals`` (``mujoco_twin``, ...); ``params`` go to the adapter's own
+    typed parameter model.
+    """
+
+    robot_id: str = Field(pattern=_ID_PATTERN)
+    adapter: str = Field(default="mujoco_twin", pattern=_ID_PATTERN)
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class TaskSpec(_Block):
+    """What the robot should do, in words the skill understands."""
+
+    instruction: str = ""
+    task_id: str | None = None
+
+
+class VLASpec(_Block):
+    """The skill (policy) to run.
+
+    Attributes:
+        id: Name of a plugin in ``openral.skills`` (``hello``, ...).
+        manifest: Optional rSkill manifest (``rskill.yaml``) checked for licence before loading.
+        accept_licenses: SPDX ids this deployment accepts; ``None`` accepts the built-in open list.
+        params: Passed to the skill's own typed parameter model.
+    """
+
+    id: str = Field(pattern=_ID_PATTERN)
+    manifest: str | None = None
+    accept_licenses: list[str] | None = None
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class SafetyConfig(_Block):
+    """Which safety client checks every action, and how.
+
+    ``client: null`` disables checking (the runner warns at start).
+    """
+
+    client: str = Field(default="envelope", pattern=_ID_PATTERN)
+    mode: SafetyMode = SafetyMode.CLAMP
+    max_joint_speed_factor: float = Field(default=1.0, gt=0, le=1.0)
+    workspace_min: tuple[float, float, float] | None = None
+    workspace_max: tuple[float, float, float] | None = None
+
+    @field_validator("client", mode="before")
+    @classmethod
+    def _yaml_null(cls, value: Any) -> Any:
+        return "null" if value is None else value
+
+
+class RealtimeConfig(_Block):
+    """Real-time knobs applied at activation; one that cannot be applied is a warning.
+
+    Attributes:
+        sched_fifo_priority: SCHED_FIFO priority (1..99) for the tick thread; ``None`` leaves the policy.
+        cpu_affinity: CPUs the process may run on; ``None`` leaves affinity alone.
+        switch_interval_s: ``sys.setswitchinterval`` value; a short interval bounds how long
+            another Python thread can hold the GIL past a tick's wake-up.
+        lock_memory: ``mlockall`` so page faults cannot stall a tick.
+    """
+
+    sched_fifo_priority: int | None = Field(default=None, ge=1, le=99)
+    cpu_affinity: list[int] | None = None
+    switch_interval_s: float | None = Field(default=None, gt=0, le=0.1)
+    lock_memory: bool = False
+
+
+class FaultPolicy(_Block):
+    """How many consecutive failed ticks of each kind end the run safely.
+
+    A failed tick (stale required sensor, failed ``read_state``, skill exception) always
+    withholds its action; after this many in a row the runner stops and holds the robot.
+    """
+
+    max_consecutive_failures: int = Field(default=5, ge=1)
+
+
+class RobotEnvironment(_Block):
+    """A deployment: robot, sensors, skill, task, rate and policies. Loaded from YAML."""
+
+    name: str = Field(default="deployment", min_length=1)
+    hal: HalConfig
+    vla: VLASpec
+    task: TaskSpec = Field(default_factory=TaskSpec)
+    sensors: list[SensorReaderConfig] = Field(default_factory=list)
+    rate_hz: float = Field(default=30.0, gt=0, le=10_000)
+    deadline_overrun_policy: DeadlineOverrunPolicy = DeadlineOverrunPolicy.WARN
+    latency_budget_ms: float | None = Field(default=None, gt=0)
+    thumbnail_hz: float = Field(default=0.0, ge=0)
+    safety: SafetyConfig = Field(default_factory=SafetyConfig)
+    realtime: RealtimeConfig = Field(default_factory=RealtimeConfig)
+    faults: FaultPolicy = Field(default_factory=FaultPolicy)
+
+    @model_validator(mode="after")
+    def _unique_sensor_ids(self) -> Self:
+        seen: set[str] = set()
+        for index, sensor in enumerate(self.sensors):
+            if sensor.sensor_id in seen:
+                raise ValueError(
+                    f"sensors[{index}].sensor_id '{sensor.sensor_id}' is used twice: give each sensor its own id"
+                )
+            seen.add(sensor.sensor_id)
+        return self
+
+    @property
+    def period_s(self) -> float:
+        """Tick period in seconds."""
+        return 1.0 / self.rate_hz
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> RobotEnvironment:
+        """Load and validate a deployment file.
+
+        Raises:
+            ROSConfigError: The file is missing, is not YAML, or a field is wrong; the
+                message names the field and the fix.
+        """
+        return load_model_yaml(cls, Path(path))

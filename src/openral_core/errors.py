@@ -1,0 +1,128 @@
+"""The ``ROS*`` error family: every failure openral raises on purpose.
+
+Each error says what happened, why, and what to do. The CLI maps
+:class:`ROSConfigError` to exit code 2 and every other :class:`ROSError` to 1.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from openral_core.results import RunResult, TickResult
+
+
+class ROSError(Exception):
+    """Base of every openral error."""
+
+
+class ROSConfigError(ROSError):
+    """A configuration, manifest or registry lookup is wrong; fixable by editing input.
+
+    Args:
+        message: What is wrong.
+        field: Dotted path of the offending field, when there is one.
+        hint: What to change to fix it.
+    """
+
+    def __init__(self, message: str, *, field: str | None = None, hint: str | None = None) -> None:
+        self.field = field
+        self.hint = hint
+        text = f"{field}: {message}" if field else message
+        if hint:
+            text = f"{text} ({hint})"
+        super().__init__(text)
+
+
+class ROSDependencyMissing(ROSConfigError):
+    """An optional dependency needed by the selected configuration is not installed."""
+
+    def __init__(self, module: str, *, extra: str, needed_for: str) -> None:
+        self.module = module
+        self.extra = extra
+        super().__init__(
+            f"{needed_for} needs the Python module '{module}', which is not installed",
+            hint=f"install the extra: uv sync --extra {extra}  (or pip install 'openral[{extra}]')",
+        )
+
+
+class ROSLicenseError(ROSConfigError):
+    """A skill's licence is not accepted by the deployment's licence policy."""
+
+
+class ROSRuntimeError(ROSError):
+    """Something failed while running: a device, a pipeline, a bus transaction."""
+
+
+class ROSHardwareError(ROSRuntimeError):
+    """The robot hardware (or its twin) failed a connect, read or write."""
+
+
+class ROSPerceptionStale(ROSRuntimeError):
+    """A sensor has no frame yet, or its freshest frame is older than the allowed age.
+
+    Args:
+        sensor_id: The sensor that is stale.
+        age_ms: Age of the freshest frame, ``None`` when no frame has arrived yet.
+        max_age_ms: The age limit that was exceeded.
+    """
+
+    def __init__(self, sensor_id: str, *, age_ms: float | None, max_age_ms: float | None) -> None:
+        self.sensor_id = sensor_id
+        self.age_ms = age_ms
+        self.max_age_ms = max_age_ms
+        if age_ms is None:
+            text = f"sensor '{sensor_id}' has not delivered a frame yet"
+        else:
+            text = f"sensor '{sensor_id}' frame is {age_ms:.1f} ms old (limit {max_age_ms} ms)"
+        super().__init__(text)
+
+
+class ROSSafetyViolation(ROSError):
+    """The safety client rejected an action; the runner withholds it.
+
+    Args:
+        message: Which limit was violated and by how much.
+        check_name: Short stable name of the check (``joint_limit``, ``non_finite``, ...).
+        severity: ``violation`` for a rejected action, ``critical`` for one that also stops the loop.
+    """
+
+    def __init__(self, message: str, *, check_name: str = "unspecified", severity: str = "violation") -> None:
+        self.check_name = check_name
+        self.severity = severity
+        super().__init__(message)
+
+
+class ROSEStopRequested(ROSError):
+    """An emergency stop was requested: the loop stops and ``HAL.estop()`` is called."""
+
+
+class ROSSkillError(ROSRuntimeError):
+    """A skill failed in a lifecycle transition or in ``step``; its error latch is set."""
+
+
+class ROSDeadlineMissed(ROSRuntimeError):
+    """A tick missed its deadline under the ``raise`` policy.
+
+    The late action was withheld and the robot left holding its last target.
+
+    Args:
+        message: Which tick was late and by how much.
+        tick_result: The late tick.
+        run_result: The partial run up to and including the late tick (set by ``run()``).
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        tick_result: TickResult | None = None,
+        run_result: RunResult | None = None,
+    ) -> None:
+        self.tick_result = tick_result
+        self.run_result = run_result
+        super().__init__(message)
+
+
+class ROSStopRequested(ROSError):
+    """A cooperative stop (signal or caller) ended the run before its tick limit."""

@@ -1,0 +1,95 @@
+"""What a runner reports: one ``TickResult`` per tick, one ``RunResult`` per run."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class TickResult(BaseModel):
+    """The record of one tick.
+
+    Phase timings are milliseconds on the runner's clock. The sim fields (``step_idx`` ...
+    ``truncated``) are ``None`` on hardware, so ``model_dump(exclude_none=True)`` of a
+    hardware tick has the original (v1) shape.
+
+    Attributes:
+        start_ns: Tick start on the runner clock, in nanoseconds.
+        lateness_ms: How far past the tick's deadline the action was ready (0 if on time).
+        action_applied: The action reached ``HAL.send_action``.
+        withheld_reason: Why it did not (``deadline``, ``safety``, ``stale_sensor``, ``skill_error``,
+            ``read_state``, ``estop``), ``None`` when applied.
+        requested_action / sent_action: Row 0 before and after the safety client, when they differ
+            the safety client clamped.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    tick_idx: int = Field(ge=0)
+    start_ns: int = 0
+    tick_ms: float = 0.0
+    sensors_ms: float = 0.0
+    world_state_ms: float = 0.0
+    inference_ms: float = 0.0
+    safety_ms: float = 0.0
+    hal_ms: float = 0.0
+    action_applied: bool = False
+    withheld_reason: str | None = None
+    safety_violations: list[str] = Field(default_factory=list)
+    stale_sensors: list[str] = Field(default_factory=list)
+    deadline_missed: bool = False
+    lateness_ms: float = 0.0
+    requested_action: list[float] | None = None
+    sent_action: list[float] | None = None
+    trace_context: str | None = None
+    step_idx: int | None = None
+    episode_idx: int | None = None
+    reward: float | None = None
+    terminated: bool | None = None
+    truncated: bool | None = None
+
+
+class RunResult(BaseModel):
+    """Honest timing and fault totals for one ``run()``.
+
+    Attributes:
+        effective_rate_hz: Ticks divided by the wall time from the first tick start to the last tick end.
+        start_jitter_us_*: How late each tick started relative to its scheduled slot.
+        missed_slots: Slots skipped after overruns (the loop never bursts to catch up).
+        overhead_us_mean: Tick time not spent in the five phases (runner bookkeeping).
+        stop_reason: ``max_ticks``, ``duration``, ``terminated``, ``stop_requested``, ``deadline``,
+            ``estop``, ``faults``.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    runner_name: str = "inference_runner"
+    skill_id: str | None = None
+    rate_hz: float = Field(gt=0)
+    n_ticks: int = Field(ge=0)
+    duration_s: float = Field(default=0.0, ge=0)
+    effective_rate_hz: float = Field(default=0.0, ge=0)
+    tick_ms_mean: float = 0.0
+    tick_ms_p50: float = 0.0
+    tick_ms_p99: float = 0.0
+    tick_ms_max: float = 0.0
+    inference_ms_mean: float = 0.0
+    inference_ms_p50: float = 0.0
+    inference_ms_p99: float = 0.0
+    inference_ms_max: float = 0.0
+    start_jitter_us_p50: float = 0.0
+    start_jitter_us_p99: float = 0.0
+    start_jitter_us_max: float = 0.0
+    overhead_us_mean: float = 0.0
+    missed_slots: int = Field(default=0, ge=0)
+    deadline_misses: int = Field(default=0, ge=0)
+    budget_violations: int = Field(default=0, ge=0)
+    dropped_actions: int = Field(default=0, ge=0)
+    withheld_actions: int = Field(default=0, ge=0)
+    stale_reads: int = Field(default=0, ge=0)
+    safety_violations: int = Field(default=0, ge=0)
+    failed_ticks: int = Field(default=0, ge=0)
+    stop_reason: str = "max_ticks"
+    trace_id: str | None = None
+    metadata: dict[str, Any] = Field(default_factory=dict)

@@ -1,0 +1,33 @@
+"""Skill identity and lifecycle states."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from openral_core.actions import ControlMode
+
+
+class RSkillState(StrEnum):
+    """Lifecycle state of a skill (ROS 2 managed-node shape)."""
+
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FINALIZED = "finalized"
+    ERROR = "error"
+
+
+class RSkillInfo(BaseModel):
+    """What a skill is: identity, licence and the action it produces."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    skill_id: str = Field(min_length=1)
+    name: str = ""
+    version: str = "0.0.0"
+    license: str = "Apache-2.0"
+    control_mode: ControlMode = ControlMode.JOINT_POSITION
+    chunk_size: int = Field(default=1, ge=1)
+    description: str = ""

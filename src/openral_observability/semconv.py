@@ -1,0 +1,83 @@
+"""Every span, attribute, event and metric name openral emits, in one table.
+
+Legacy prefixes (``rskill.*``, ``skill.*``, ``safety.*``) are kept verbatim; newer layers
+use ``openral.<layer>.*``.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+TRACER_NAME: Final = "openral"
+METER_NAME: Final = "openral"
+
+# Spans
+SPAN_CLI_COMMAND: Final = "cli.command"
+SPAN_TICK: Final = "rskill.tick"
+SPAN_SENSORS_READ: Final = "sensors.read_latest"
+SPAN_HAL_READ_STATE: Final = "hal.read_state"
+SPAN_WORLD_STATE_SNAPSHOT: Final = "world_state.snapshot"
+SPAN_SKILL_INFERENCE: Final = "skill.chunk_inference"
+SPAN_SKILL_EXECUTE: Final = "rskill.execute"
+SPAN_SAFETY_CHECK: Final = "safety.check"
+SPAN_HAL_SEND_ACTION: Final = "hal.send_action"
+SPAN_HAL_ESTOP: Final = "hal.estop"
+
+# Tick attributes
+ATTR_TICK_IDX: Final = "openral.tick.idx"
+ATTR_SKILL_ID: Final = "skill.id"
+ATTR_TICK_MS: Final = "skill.tick_ms"
+ATTR_SENSORS_MS: Final = "skill.sensors_ms"
+ATTR_WORLD_STATE_MS: Final = "skill.world_state_ms"
+ATTR_INFERENCE_MS: Final = "skill.inference_ms"
+ATTR_SAFETY_MS: Final = "skill.safety_ms"
+ATTR_HAL_MS: Final = "skill.hal_ms"
+ATTR_ACTION_APPLIED: Final = "skill.action_applied"
+ATTR_WITHHELD_REASON: Final = "skill.withheld_reason"
+ATTR_SAFETY_VIOLATIONS: Final = "skill.safety_violations"
+ATTR_LATENESS_MS: Final = "openral.tick.lateness_ms"
+ATTR_STEP_IDX: Final = "skill.step_idx"
+ATTR_EPISODE_IDX: Final = "skill.episode_idx"
+ATTR_REWARD: Final = "skill.reward"
+ATTR_TERMINATED: Final = "skill.terminated"
+ATTR_TRUNCATED: Final = "skill.truncated"
+
+# Other attributes
+ATTR_SENSOR_ID: Final = "openral.sensor.id"
+ATTR_SENSOR_AGE_MS: Final = "openral.sensors.age_ms"
+ATTR_HAL_ADAPTER: Final = "openral.hal.adapter"
+ATTR_HAL_ROBOT_MODEL: Final = "openral.hal.robot.model"
+ATTR_HAL_CONTROL_MODE: Final = "openral.hal.control_mode"
+ATTR_SAFETY_CHECK_NAME: Final = "check_name"
+ATTR_SAFETY_SEVERITY: Final = "severity"
+ATTR_SAFETY_CONTROL_MODE: Final = "safety.control_mode"
+ATTR_SAFETY_HORIZON: Final = "safety.horizon"
+ATTR_SAFETY_MAX_EE_SPEED: Final = "safety.envelope_max_ee_speed_m_s"
+ATTR_SAFETY_MAX_FORCE: Final = "safety.envelope_max_force_n"
+ATTR_COMPONENT: Final = "openral.world_state.component"
+ATTR_CLI_COMMAND: Final = "openral.cli.command"
+
+# Events
+EVENT_DEADLINE_MISSED: Final = "openral.event.deadline_missed"
+EVENT_SENSOR_STALE: Final = "openral.event.sensor_stale"
+EVENT_STALENESS_LATCHED: Final = "openral.event.staleness_latched"
+EVENT_ERROR_LATCHED: Final = "openral.event.error_latched"
+EVENT_SAFETY_VIOLATION: Final = "openral.event.safety_violation"
+EVENT_ACTION_DROPPED: Final = "openral.event.action_dropped"
+EVENT_ESTOP_REQUESTED: Final = "openral.event.estop_requested"
+EVENT_TICK_FAILED: Final = "openral.event.tick_failed"
+
+# Metrics
+METRIC_TICK_DURATION: Final = "openral.tick.duration"
+METRIC_INFERENCE_DURATION: Final = "openral.inference.duration"
+METRIC_HAL_READ_STATE_DURATION: Final = "openral.hal.read_state.duration"
+METRIC_HAL_SEND_ACTION_DURATION: Final = "openral.hal.send_action.duration"
+METRIC_SENSORS_AGE: Final = "openral.sensors.age_ms"
+METRIC_WORLD_STATE_STALENESS: Final = "openral.world_state.staleness_ms"
+METRIC_WORLD_STATE_COMPONENTS_STALE: Final = "openral.world_state.components_stale"
+METRIC_DEADLINE_MISSES: Final = "openral.tick.deadline_misses"
+METRIC_BUDGET_VIOLATIONS: Final = "openral.tick.budget_violations"
+METRIC_MISSED_SLOTS: Final = "openral.tick.missed_slots"
+METRIC_SAFETY_VIOLATIONS: Final = "openral.safety.violations"
+METRIC_SENSORS_STALE_READS: Final = "openral.sensors.stale_reads"
+METRIC_ACTIONS_WITHHELD: Final = "openral.tick.actions_withheld"
