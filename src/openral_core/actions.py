@@ -24,9 +24,10 @@ class Action(BaseModel):
     ``horizon`` (the number of rows) is 1 for a single command and larger for an action
     chunk; the HAL applies row 0. Non-finite values are representable on purpose so that
     the safety client, not the constructor, rejects them and the rejection is traced.
+    In JSON they are written as ``NaN`` / ``Infinity`` so they survive a round trip.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", ser_json_inf_nan="constants")
 
     control_mode: ControlMode = ControlMode.JOINT_POSITION
     joint_names: list[str]

@@ -37,6 +37,11 @@ class DeadlineOverrunPolicy(StrEnum):
     RAISE = "raise"
 
 
+def _null_name(value: Any) -> Any:
+    """YAML reads an unquoted ``null`` plugin name as ``None``; the plugin is called "null"."""
+    return "null" if value is None else value
+
+
 class _Block(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -82,6 +87,11 @@ class HalConfig(_Block):
     adapter: str = Field(default="mujoco_twin", pattern=_ID_PATTERN)
     params: dict[str, Any] = Field(default_factory=dict)
 
+    @field_validator("adapter", mode="before")
+    @classmethod
+    def _yaml_null(cls, value: Any) -> Any:
+        return _null_name(value)
+
 
 class TaskSpec(_Block):
     """What the robot should do, in words the skill understands."""
@@ -121,7 +131,7 @@ class SafetyConfig(_Block):
     @field_validator("client", mode="before")
     @classmethod
     def _yaml_null(cls, value: Any) -> Any:
-        return "null" if value is None else value
+        return _null_name(value)
 
 
 class RealtimeConfig(_Block):

@@ -59,13 +59,19 @@ class PluginRegistry(Mapping[str, Any]):
     def __contains__(self, name: object) -> bool:
         return name in self._entry_points
 
-    def unknown(self, name: str) -> ROSConfigError:
+    def resolve(self, name: str, *, field: str | None = None) -> Any:
+        """Like ``registry[name]``, but an unknown name's error names ``field`` (e.g. ``sensors[2].backend``)."""
+        if name not in self._entry_points:
+            raise self.unknown(name, field=field)
+        return self[name]
+
+    def unknown(self, name: str, *, field: str | None = None) -> ROSConfigError:
         """The error for a name that is not registered."""
         known = sorted(self._entry_points)
         close = difflib.get_close_matches(name, known, n=1)
         hint = f"did you mean '{close[0]}'?" if close else f"install the plugin that provides '{name}'"
         return ROSConfigError(
             f"unknown {self.kind} '{name}'; known: {', '.join(known) or 'none'}",
-            field=self.field,
+            field=field or self.field,
             hint=hint,
         )

@@ -24,7 +24,7 @@ class TickResult(BaseModel):
             the safety client clamped.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", ser_json_inf_nan="constants")
 
     tick_idx: int = Field(ge=0)
     start_ns: int = 0

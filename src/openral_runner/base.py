@@ -1,0 +1,442 @@
+"""``InferenceRunnerBase``: cadence, deadline policy, the tick span, and honest run statistics.
+
+Subclasses implement ``_tick_impl``; the base owns everything around one tick:
+
+* **Absolute schedule.** Slot ``k`` starts at ``t0 + k / rate_hz``. After an overrun the next
+  tick starts at the next future slot boundary; skipped slots are counted, phase is kept, and
+  there is never a catch-up burst.
+* **Deadline policy before actuation.** A subclass calls ``_deadline_allows_send()`` after
+  safety and before ``HAL.send_action``: ``warn`` sends and counts, ``drop`` withholds the late
+  action, ``raise`` withholds it, stops the loop and raises ``ROSDeadlineMissed`` carrying
+  the partial ``RunResult``.
+* **Faults as policy.** Ticks withheld for a fault (stale required sensor, failed state read,
+  skill error, HAL error) are counted; after ``max_consecutive_failures`` in a row the loop
+  stops with ``stop_reason="faults"``.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections import deque
+from pathlib import Path
+from typing import Any, Final
+
+import structlog
+from opentelemetry import context, trace
+from opentelemetry.trace import Span, Status, StatusCode
+
+from openral_core import (
+    DeadlineOverrunPolicy,
+    ROSConfigError,
+    ROSDeadlineMissed,
+    ROSRuntimeError,
+    RunResult,
+    TickResult,
+)
+from openral_observability import metrics, semconv, trace_id_hex, traceparent, tracer
+from openral_runner.clock import Clock, SystemClock
+from openral_runner.stats import RollingSamples
+
+_log = structlog.get_logger(__name__)
+
+FAULT_REASONS: Final = frozenset({"stale_sensor", "read_state", "skill_error", "hal_error"})
+"""Withheld reasons that count towards ``max_consecutive_failures``."""
+
+_RECENT_TICKS: Final = 4096
+
+
+def _fill(result: TickResult, values: dict[str, Any]) -> None:
+    """Set fields on a tick result without pydantic's per-assignment machinery (hot path)."""
+    result.__dict__.update(values)
+
+
+class InferenceRunnerBase(ABC):
+    """Shared loop for hardware and sim runners.
+
+    Args:
+        rate_hz: Tick rate; must be positive.
+        deadline_overrun_policy: What to do with an action ready after its slot ends.
+        runner_name: Name reported in results and logs.
+        latency_budget_ms: Optional per-tick budget; ticks longer than it are counted.
+        save_dir: Where a subclass may write artefacts.
+        clock: Scheduling clock; a fake clock makes tests deterministic.
+        skill_id: Reported in results and as the ``skill.id`` metric label.
+        max_consecutive_failures: Faulted ticks in a row that end the run safely.
+    """
+
+    def __init__(
+        self,
+        *,
+        rate_hz: float = 30.0,
+        deadline_overrun_policy: DeadlineOverrunPolicy = DeadlineOverrunPolicy.WARN,
+        runner_name: str = "inference_runner",
+        latency_budget_ms: float | None = None,
+        save_dir: Path | None = None,
+        clock: Clock | None = None,
+        skill_id: str | None = None,
+        max_consecutive_failures: int = 5,
+    ) -> None:
+        if not rate_hz > 0:
+            raise ROSConfigError(f"must be positive, got {rate_hz}", field="rate_hz")
+        if max_consecutive_failures < 1:
+            raise ROSConfigError("must be at least 1", field="faults.max_consecutive_failures")
+        self.rate_hz = float(rate_hz)
+        self.period_s = 1.0 / self.rate_hz
+        self.deadline_overrun_policy = DeadlineOverrunPolicy(deadline_overrun_policy)
+        self.runner_name = runner_name
+        self.latency_budget_ms = latency_budget_ms
+        self.save_dir = save_dir
+        self.skill_id = skill_id
+        self.max_consecutive_failures = max_consecutive_failures
+        self._clock: Clock = clock or SystemClock()
+        self._active = False
+        self._tick_idx = 0
+        self._stop_reason: str | None = None
+        self._deadline_s = 0.0
+        self._deadline_checked = False
+        self._raise_pending = False
+        self._lateness_ms = 0.0
+        self._metric_attrs = {semconv.ATTR_SKILL_ID: skill_id or runner_name}
+        # A proxy tracer from the API: it follows whichever provider is installed later.
+        self._tracer = tracer()
+        self._last_late_log_s = float("-inf")
+        self._late_since_log = 0
+        self.metadata: dict[str, Any] = {}
+        self.recent_ticks: deque[TickResult] = deque(maxlen=_RECENT_TICKS)
+        self._tick_ms = RollingSamples()
+        self._inference_ms = RollingSamples()
+        self._jitter_us = RollingSamples()
+        self._overhead_us = RollingSamples()
+        self._reset_counters()
+
+    # -- lifecycle -----------------------------------------------------------------------
+
+    @property
+    def is_active(self) -> bool:
+        """True between ``activate()`` and ``deactivate()``."""
+        return self._active
+
+    def activate(self) -> None:
+        """Reset the tick counter and mark the runner ready to tick."""
+        self._tick_idx = 0
+        self._stop_reason = None
+        self._active = True
+
+    def deactivate(self) -> None:
+        """Stop ticking. Idempotent."""
+        self._active = False
+
+    def request_stop(self, reason: str = "stop_requested") -> None:
+        """Ask ``run()`` to finish the current tick and return. Safe from signal handlers and threads."""
+        if self._stop_reason is None:
+            self._stop_reason = reason
+
+    @abstractmethod
+    def _tick_impl(self, tick_idx: int) -> TickResult:
+        """Run one tick's phases; call ``_deadline_allows_send()`` right before actuating."""
+
+    def _should_terminate(self) -> bool:
+        """Subclass hook consulted after each tick; ``True`` ends ``run()`` (``stop_reason="terminated"``)."""
+        return False
+
+    def episode_start(self, task_string: str) -> int:
+        """Open an explicit episode boundary; runners that support episodes override this."""
+        raise NotImplementedError(f"{type(self).__name__} has no explicit episodes")
+
+    def episode_end(self, *, success: bool) -> None:
+        """Close the episode opened by ``episode_start``."""
+        raise NotImplementedError(f"{type(self).__name__} has no explicit episodes")
+
+    # -- one tick ------------------------------------------------------------------------
+
+    def tick(self) -> TickResult:
+        """Run one tick now, with a deadline one period away; no cadence is enforced.
+
+        Raises:
+            ROSDeadlineMissed: Under the ``raise`` policy, when the tick was late.
+        """
+        self._require_active()
+        start = self._clock.now()
+        return self._run_tick(start, start + self.period_s)
+
+    def _run_tick(self, start_s: float, deadline_s: float) -> TickResult:
+        idx = self._tick_idx
+        self._tick_idx += 1
+        self._deadline_s = deadline_s
+        self._deadline_checked = False
+        self._raise_pending = False
+        self._lateness_ms = 0.0
+        span = self._tracer.start_span(semconv.SPAN_TICK)
+        token = context.attach(trace.set_span_in_context(span))
+        try:
+            result = self._tick_impl(idx)
+            if not self._deadline_checked:
+                self._deadline_allows_send()
+            end_s = self._clock.now()
+            tick_ms = (end_s - start_s) * 1e3
+            _fill(
+                result,
+                {
+                    "tick_idx": idx,
+                    "start_ns": int(start_s * 1e9),
+                    "tick_ms": tick_ms,
+                    "deadline_missed": self._lateness_ms > 0.0,
+                    "lateness_ms": self._lateness_ms,
+                    "trace_context": traceparent(span),
+                },
+            )
+            self._account(result, span)
+            if self._raise_pending:
+                error = ROSDeadlineMissed(
+                    f"tick {idx} was {self._lateness_ms:.2f} ms past its deadline "
+                    f"(policy raise): action withheld, robot holding",
+                    tick_result=result,
+                )
+                span.record_exception(error)
+                span.set_status(Status(StatusCode.ERROR, "deadline missed"))
+                raise error
+        finally:
+            context.detach(token)
+            span.end()
+        return result
+
+    def _deadline_allows_send(self) -> bool:
+        """Apply the deadline policy now; ``False`` means withhold the action.
+
+        Call once per tick, after safety and immediately before actuating.
+        """
+        self._deadline_checked = True
+        late_s = self._clock.now() - self._deadline_s
+        if late_s <= 0.0:
+            return True
+        self._lateness_ms = late_s * 1e3
+        self._deadline_misses += 1
+        metrics.add(semconv.METRIC_DEADLINE_MISSES, 1, self._metric_attrs)
+        trace.get_current_span().add_event(
+            semconv.EVENT_DEADLINE_MISSED,
+            {semconv.ATTR_LATENESS_MS: self._lateness_ms, "policy": self.deadline_overrun_policy.value},
+        )
+        self._log_late()
+        if self.deadline_overrun_policy is DeadlineOverrunPolicy.WARN:
+            return True
+        if self.deadline_overrun_policy is DeadlineOverrunPolicy.RAISE:
+            self._raise_pending = True
+        return False
+
+    def _log_late(self) -> None:
+        """Log deadline misses at most once a second, with the count since the last line."""
+        self._late_since_log += 1
+        now = self._clock.now()
+        if now - self._last_late_log_s >= 1.0:
+            _log.warning(
+                "tick late",
+                lateness_ms=round(self._lateness_ms, 3),
+                policy=self.deadline_overrun_policy.value,
+                late_ticks_since_last_report=self._late_since_log,
+            )
+            self._last_late_log_s = now
+            self._late_since_log = 0
+
+    def _account(self, result: TickResult, span: Span) -> None:
+        phases_ms = result.sensors_ms + result.world_state_ms + result.inference_ms + result.safety_ms + result.hal_ms
+        self._tick_ms.add(result.tick_ms)
+        self._inference_ms.add(result.inference_ms)
+        self._overhead_us.add(max(0.0, result.tick_ms - phases_ms) * 1e3)
+        reason = result.withheld_reason
+        if reason is not None:
+            self._withheld += 1
+            if reason == "deadline":
+                self._dropped += 1
+            if reason in FAULT_REASONS:
+                self._failed += 1
+                self._consecutive_failures += 1
+                if self._consecutive_failures >= self.max_consecutive_failures:
+                    _log.error(
+                        "stopping: too many consecutive failed ticks",
+                        failures=self._consecutive_failures,
+                        last_reason=reason,
+                    )
+                    self.request_stop("faults")
+            else:
+                self._consecutive_failures = 0
+        else:
+            self._consecutive_failures = 0
+        self._stale_reads += len(result.stale_sensors)
+        self._safety_violations += len(result.safety_violations)
+        if self.latency_budget_ms is not None and result.tick_ms > self.latency_budget_ms:
+            self._budget_violations += 1
+            metrics.add(semconv.METRIC_BUDGET_VIOLATIONS, 1, self._metric_attrs)
+        metrics.record_histogram_ms(semconv.METRIC_TICK_DURATION, result.tick_ms, self._metric_attrs)
+        metrics.record_histogram_ms(semconv.METRIC_INFERENCE_DURATION, result.inference_ms, self._metric_attrs)
+        if self._trace_id is None:
+            self._trace_id = trace_id_hex(span)
+        if span.is_recording():
+            attributes: dict[str, Any] = {
+                semconv.ATTR_TICK_IDX: result.tick_idx,
+                semconv.ATTR_TICK_MS: result.tick_ms,
+                semconv.ATTR_SENSORS_MS: result.sensors_ms,
+                semconv.ATTR_WORLD_STATE_MS: result.world_state_ms,
+                semconv.ATTR_INFERENCE_MS: result.inference_ms,
+                semconv.ATTR_SAFETY_MS: result.safety_ms,
+                semconv.ATTR_HAL_MS: result.hal_ms,
+                semconv.ATTR_ACTION_APPLIED: result.action_applied,
+                semconv.ATTR_SAFETY_VIOLATIONS: len(result.safety_violations),
+            }
+            if reason is not None:
+                attributes[semconv.ATTR_WITHHELD_REASON] = reason
+            if result.deadline_missed:
+                attributes[semconv.ATTR_LATENESS_MS] = result.lateness_ms
+            for name, attr in (
+                ("step_idx", semconv.ATTR_STEP_IDX),
+                ("episode_idx", semconv.ATTR_EPISODE_IDX),
+                ("reward", semconv.ATTR_REWARD),
+                ("terminated", semconv.ATTR_TERMINATED),
+                ("truncated", semconv.ATTR_TRUNCATED),
+            ):
+                value = getattr(result, name)
+                if value is not None:
+                    attributes[attr] = value
+            span.set_attributes(attributes)
+        self.recent_ticks.append(result)
+
+    # -- the loop ------------------------------------------------------------------------
+
+    def run(self, max_ticks: int | None = None, *, duration_s: float | None = None) -> RunResult:
+        """Tick on the absolute schedule until ``max_ticks``, ``duration_s``, a stop or termination.
+
+        Raises:
+            ROSRuntimeError: The runner is not active.
+            ROSDeadlineMissed: Under the ``raise`` policy; ``run_result`` holds the partial run.
+        """
+        self._require_active()
+        if max_ticks is not None and max_ticks < 0:
+            raise ROSConfigError(f"must be >= 0, got {max_ticks}", field="max_ticks")
+        self._reset_counters()
+        clock = self._clock
+        period = self.period_s
+        t0 = clock.now()
+        self._run_t0 = t0
+        end_limit = None if duration_s is None else t0 + duration_s
+        slot = 0
+        n = 0
+        stop_reason = "max_ticks"
+        while True:
+            if self._stop_reason is not None:
+                stop_reason = self._stop_reason
+                break
+            if max_ticks is not None and n >= max_ticks:
+                break
+            slot_start = t0 + slot * period
+            if end_limit is not None and slot_start >= end_limit:
+                stop_reason = "duration"
+                break
+            clock.sleep_until(slot_start)
+            start = clock.now()
+            if n == 0:
+                self._first_start_s = start
+            self._last_start_s = start
+            self._jitter_us.add((start - slot_start) * 1e6)
+            try:
+                self._run_tick(start, slot_start + period)
+            except ROSDeadlineMissed as exc:
+                n += 1
+                self._run_t_end = clock.now()
+                exc.run_result = self._build_run_result(n, "deadline")
+                raise
+            n += 1
+            end = clock.now()
+            self._run_t_end = end
+            if self._should_terminate():
+                stop_reason = "terminated"
+                break
+            next_slot = slot + 1
+            if end > t0 + next_slot * period:
+                next_slot = int((end - t0) / period) + 1
+                skipped = next_slot - slot - 1
+                if skipped > 0:
+                    self._missed_slots += skipped
+                    metrics.add(semconv.METRIC_MISSED_SLOTS, skipped, self._metric_attrs)
+            slot = next_slot
+        return self._build_run_result(n, stop_reason)
+
+    # -- results -------------------------------------------------------------------------
+
+    def _reset_counters(self) -> None:
+        self._missed_slots = 0
+        self._deadline_misses = 0
+        self._budget_violations = 0
+        self._dropped = 0
+        self._withheld = 0
+        self._failed = 0
+        self._consecutive_failures = 0
+        self._stale_reads = 0
+        self._safety_violations = 0
+        self._trace_id: str | None = None
+        self._run_t0 = 0.0
+        self._run_t_end = 0.0
+        self._first_start_s = 0.0
+        self._last_start_s = 0.0
+        for samples in (self._tick_ms, self._inference_ms, self._jitter_us, self._overhead_us):
+            samples.clear()
+        self.recent_ticks.clear()
+
+    def _build_run_result(self, n_ticks: int, stop_reason: str) -> RunResult:
+        duration = max(0.0, self._run_t_end - self._run_t0)
+        return RunResult(
+            runner_name=self.runner_name,
+            skill_id=self.skill_id,
+            rate_hz=self.rate_hz,
+            n_ticks=n_ticks,
+            duration_s=duration,
+            effective_rate_hz=self._effective_rate(n_ticks),
+            tick_ms_mean=self._tick_ms.mean,
+            tick_ms_p50=self._tick_ms.percentile(50),
+            tick_ms_p99=self._tick_ms.percentile(99),
+            tick_ms_max=self._tick_ms.max,
+            inference_ms_mean=self._inference_ms.mean,
+            inference_ms_p50=self._inference_ms.percentile(50),
+            inference_ms_p99=self._inference_ms.percentile(99),
+            inference_ms_max=self._inference_ms.max,
+            start_jitter_us_p50=self._jitter_us.percentile(50),
+            start_jitter_us_p99=self._jitter_us.percentile(99),
+            start_jitter_us_max=self._jitter_us.max,
+            overhead_us_mean=self._overhead_us.mean,
+            missed_slots=self._missed_slots,
+            deadline_misses=self._deadline_misses,
+            budget_violations=self._budget_violations,
+            dropped_actions=self._dropped,
+            withheld_actions=self._withheld,
+            stale_reads=self._stale_reads,
+            safety_violations=self._safety_violations,
+            failed_ticks=self._failed,
+            stop_reason=stop_reason,
+            trace_id=self._trace_id,
+            metadata=dict(self.metadata),
+        )
+
+    def _effective_rate(self, n_ticks: int) -> float:
+        """Achieved rate: intervals between the first and the last tick start, per second."""
+        span_s = self._last_start_s - self._first_start_s
+        if n_ticks < 2 or span_s <= 0:
+            return 0.0
+        return (n_ticks - 1) / span_s
+
+    def live_status(self) -> dict[str, float]:
+        """A cheap snapshot for a status display, readable from another thread while running."""
+        n = len(self._tick_ms)
+        elapsed = self._clock.now() - self._run_t0 if self._run_t0 else 0.0
+        return {
+            "ticks": float(n),
+            "rate_hz": n / elapsed if elapsed > 0 else 0.0,
+            "tick_ms_p50": self._tick_ms.percentile(50),
+            "tick_ms_p99": self._tick_ms.percentile(99),
+            "deadline_misses": float(self._deadline_misses),
+            "missed_slots": float(self._missed_slots),
+            "dropped_actions": float(self._dropped),
+            "stale_reads": float(self._stale_reads),
+            "safety_violations": float(self._safety_violations),
+        }
+
+    def _require_active(self) -> None:
+        if not self._active:
+            raise ROSRuntimeError(f"{self.runner_name} is not active: call activate() first")

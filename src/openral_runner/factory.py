@@ -1,0 +1,128 @@
+"""From a ``RobotEnvironment`` to a live ``HardwareRunner``: the one seam ``openral deploy`` goes through.
+
+Every component is found through its entry-point group, built-ins included, so a third-party
+skill, HAL, sensor backend or safety client is used exactly like a built-in one. Each
+registry is read once here, at build time, never per tick.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import structlog
+from openral_rskill.manifest import RSkillManifest
+
+from openral_core import RobotEnvironment, RobotManifest, ROSConfigError
+from openral_core.plugins import (
+    HALS_GROUP,
+    SAFETY_CLIENTS_GROUP,
+    SENSOR_BACKENDS_GROUP,
+    SKILLS_GROUP,
+    PluginRegistry,
+)
+from openral_hal.manifests import load_robot_manifest
+from openral_hal.protocol import HAL
+from openral_rskill.base import RSkillBase
+from openral_runner.clock import Clock
+from openral_runner.hardware import HardwareRunner
+from openral_runner.safety import SafetyClient
+from openral_runner.sensor_reader import SensorReader
+from openral_world_state import WorldStateAggregator
+
+_log = structlog.get_logger(__name__)
+
+SKILL_REGISTRY = PluginRegistry(SKILLS_GROUP, kind="skill", field="vla.id")
+"""Skill id → skill class (``Cls.from_config(params, robot=..., rate_hz=...)``)."""
+
+SENSOR_BACKEND_REGISTRY = PluginRegistry(SENSOR_BACKENDS_GROUP, kind="sensor backend", field="sensors[].backend")
+"""Backend id → reader class (``Cls.from_config(config, hal=..., robot=...)``)."""
+
+HAL_REGISTRY = PluginRegistry(HALS_GROUP, kind="HAL adapter", field="hal.adapter")
+"""Adapter id → HAL class (``Cls(manifest, params)``)."""
+
+SAFETY_CLIENT_REGISTRY = PluginRegistry(SAFETY_CLIENTS_GROUP, kind="safety client", field="safety.client")
+"""Client id → safety client class (``Cls.from_config(config, robot=..., rate_hz=...)``)."""
+
+JOINT_STATE_MAX_AGE_TICKS = 3
+"""A joint state older than this many periods is stale (it is read every tick)."""
+
+
+def build_runner(
+    env: RobotEnvironment,
+    *,
+    base_dir: Path | None = None,
+    clock: Clock | None = None,
+) -> tuple[HardwareRunner, RSkillBase]:
+    """Compose HAL, skill, world state, sensor readers and safety client into a runner.
+
+    The skill is returned unconfigured alongside the runner: the caller drives its
+    lifecycle (configure, activate, ... shutdown) around ``runner.activate()``.
+
+    Args:
+        env: The validated deployment.
+        base_dir: Directory relative paths in ``env`` are resolved against (the deployment file's).
+        clock: Scheduling clock; the system clock when ``None``.
+
+    Raises:
+        ROSConfigError: An unknown plugin id, robot id, bad plugin parameters, or a rejected licence.
+    """
+    robot = load_robot_manifest(env.hal.robot_id)
+    skill_params = dict(env.vla.params)
+    if env.vla.manifest is not None:
+        manifest_path = Path(env.vla.manifest)
+        if not manifest_path.is_absolute() and base_dir is not None:
+            manifest_path = base_dir / manifest_path
+        rskill = RSkillManifest.from_yaml(manifest_path, accept_licenses=env.vla.accept_licenses)
+        rskill.check_compatible(robot.robot_id)
+        if rskill.skill != env.vla.id:
+            raise ROSConfigError(
+                f"manifest {manifest_path} is for skill '{rskill.skill}', not '{env.vla.id}'",
+                field="vla.id",
+                hint=f"set vla.id: {rskill.skill}",
+            )
+        skill_params = rskill.merged_params(env.vla.params)
+    hal: HAL = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
+    skill: RSkillBase = SKILL_REGISTRY[env.vla.id].from_config(skill_params, robot=robot, rate_hz=env.rate_hz)
+    safety: SafetyClient = SAFETY_CLIENT_REGISTRY[env.safety.client].from_config(
+        env.safety, robot=robot, rate_hz=env.rate_hz
+    )
+    readers = [_build_reader(index, env, hal, robot) for index, _ in enumerate(env.sensors)]
+    aggregator_kwargs: dict[str, Any] = {
+        "joint_max_age_ms": JOINT_STATE_MAX_AGE_TICKS * 1e3 / env.rate_hz,
+        "sensors": env.sensors,
+    }
+    if clock is not None:
+        aggregator_kwargs["clock"] = clock.now_ns
+    runner = HardwareRunner(
+        hal=hal,
+        skill=skill,
+        aggregator=WorldStateAggregator(**aggregator_kwargs),
+        sensor_readers=readers,
+        safety_client=safety,
+        task=env.task.instruction or None,
+        rate_hz=env.rate_hz,
+        deadline_overrun_policy=env.deadline_overrun_policy,
+        latency_budget_ms=env.latency_budget_ms,
+        clock=clock,
+        max_consecutive_failures=env.faults.max_consecutive_failures,
+        runner_name=env.name,
+        realtime=env.realtime,
+    )
+    return runner, skill
+
+
+def _build_reader(index: int, env: RobotEnvironment, hal: HAL, robot: RobotManifest) -> SensorReader:
+    config = env.sensors[index]
+    backend = SENSOR_BACKEND_REGISTRY.resolve(config.backend.value, field=f"sensors[{index}].backend")
+    reader: SensorReader = backend.from_config(config, hal=hal, robot=robot)
+    return reader
+
+
+__all__ = [
+    "HAL_REGISTRY",
+    "SAFETY_CLIENT_REGISTRY",
+    "SENSOR_BACKEND_REGISTRY",
+    "SKILL_REGISTRY",
+    "build_runner",
+]

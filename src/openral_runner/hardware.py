@@ -1,0 +1,291 @@
+"""``HardwareRunner``: sensors → world state → skill → safety → HAL, once per tick.
+
+The runner is the safety-supervisor boundary: it is the only place that catches
+``ROSSafetyViolation`` (withhold), ``ROSEStopRequested`` (e-stop and stop), stale required
+sensors, failed state reads and skill exceptions. Every one of them withholds the tick's
+action, so the robot is never driven by an action computed from bad inputs; the HAL keeps
+holding its last accepted target.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
+from typing import Any
+
+import structlog
+from opentelemetry import context, trace
+from opentelemetry.trace import Status, StatusCode
+
+from openral_core import (
+    Action,
+    RealtimeConfig,
+    ROSError,
+    ROSEStopRequested,
+    ROSPerceptionStale,
+    ROSSafetyViolation,
+    TickResult,
+)
+from openral_hal.protocol import HAL
+from openral_observability import metrics, semconv
+from openral_rskill.base import RSkillBase
+from openral_runner.base import InferenceRunnerBase
+from openral_runner.realtime import apply_realtime
+from openral_runner.safety import NullSafetyClient, SafetyClient
+from openral_runner.sensor_reader import SensorReader
+from openral_world_state import WorldStateAggregator
+
+_log = structlog.get_logger(__name__)
+
+
+class HardwareRunner(InferenceRunnerBase):
+    """Closes the loop on a robot (or its twin).
+
+    The caller configures and activates the skill; the runner opens and closes the HAL and
+    the sensor readers. ``activate()`` rolls back whatever it opened if any step fails.
+
+    Args:
+        hal: The robot.
+        skill: An active skill.
+        aggregator: Builds the world state each tick.
+        sensor_readers: Capture backends, opened in order at activation.
+        safety_client: Checks every action; defaults to ``NullSafetyClient``.
+        task: Instruction placed in every world state.
+        realtime: Real-time knobs applied to the calling thread at activation.
+        **base_kwargs: ``InferenceRunnerBase`` options (rate, policy, clock, ...).
+    """
+
+    def __init__(
+        self,
+        *,
+        hal: HAL,
+        skill: RSkillBase,
+        aggregator: WorldStateAggregator,
+        sensor_readers: Sequence[SensorReader] = (),
+        safety_client: SafetyClient | None = None,
+        task: str | None = None,
+        realtime: RealtimeConfig | None = None,
+        **base_kwargs: Any,
+    ) -> None:
+        base_kwargs.setdefault("runner_name", "hardware_runner")
+        base_kwargs.setdefault("skill_id", skill.info.skill_id)
+        super().__init__(**base_kwargs)
+        self.hal = hal
+        self.skill = skill
+        self.aggregator = aggregator
+        self.sensor_readers = list(sensor_readers)
+        self.safety_client: SafetyClient = safety_client or NullSafetyClient()
+        self.task = task
+        self.realtime = realtime
+        self._opened: ExitStack | None = None
+        self._safety_observe = getattr(self.safety_client, "observe_state", None)
+        self._safety_commit = getattr(self.safety_client, "commit", None)
+        self._hal_attrs = {
+            semconv.ATTR_HAL_ADAPTER: type(hal).__name__.lower(),
+            semconv.ATTR_HAL_ROBOT_MODEL: hal.robot_id,
+        }
+
+    # -- lifecycle -----------------------------------------------------------------------
+
+    def activate(self) -> None:
+        """Connect the HAL, then open every reader; on any failure close what was opened.
+
+        Raises:
+            ROSError: Whatever the failing component raised, after rollback.
+        """
+        if self._opened is not None:
+            super().activate()
+            return
+        if self.realtime is not None:
+            self.metadata["realtime"] = apply_realtime(self.realtime)
+        with ExitStack() as stack:
+            self.hal.connect()
+            stack.callback(self._safe_close, "hal", self.hal.disconnect)
+            for reader in self.sensor_readers:
+                reader.open()
+                stack.callback(self._safe_close, f"sensor {reader.sensor_id}", reader.close)
+            super().activate()
+            self._opened = stack.pop_all()
+
+    def deactivate(self) -> None:
+        """Close every reader, then disconnect the HAL. Idempotent; failures are logged, not raised."""
+        super().deactivate()
+        opened, self._opened = self._opened, None
+        if opened is not None:
+            opened.close()
+
+    @staticmethod
+    def _safe_close(what: str, close: Callable[[], None]) -> None:
+        try:
+            close()
+        except Exception as exc:  # a failing close must not stop the others from closing
+            _log.warning("close failed", component=what, error=str(exc))
+
+    # -- the tick ------------------------------------------------------------------------
+
+    def _tick_impl(self, tick_idx: int) -> TickResult:
+        # Phase spans are started as children of the current tick span without being made
+        # current themselves (``start_span`` costs a tenth of ``start_as_current_span``); only
+        # the inference span becomes current, so spans a skill opens nest under it.
+        now = self._clock.now
+        tr = self._tracer
+        withheld: str | None = None
+        stale: list[str] = []
+        violations: list[str] = []
+
+        t0 = now()
+        for reader in self.sensor_readers:
+            stale_id = self._read_sensor(reader)
+            if stale_id is not None:
+                stale.append(stale_id)
+        span = tr.start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
+        try:
+            state = self.hal.read_state()
+            self.aggregator.update_joint_state(state)
+            if self._safety_observe is not None:
+                self._safety_observe(state)
+        except ROSError as exc:
+            withheld = "read_state"
+            _record_error(span, exc)
+            _log.warning("read_state failed", error=str(exc), tick=tick_idx)
+        finally:
+            span.end()
+        t1 = now()
+        metrics.record_histogram_ms(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t0) * 1e3, self._hal_attrs)
+
+        world = self.aggregator.snapshot(task=self.task)
+        if withheld is None and world.stale_required:
+            withheld = "stale_sensor"
+
+        t2 = now()
+        action: Action | None = None
+        if withheld is None:
+            span = tr.start_span(semconv.SPAN_SKILL_INFERENCE)
+            token = context.attach(trace.set_span_in_context(span))
+            try:
+                action = self.skill.step(world)
+            except ROSEStopRequested as exc:
+                withheld = self._estop(exc)
+            except Exception as exc:  # the skill is third-party code: any failure withholds
+                withheld = "skill_error"
+                _record_error(span, exc)
+                _log.warning("skill step failed", error=str(exc), tick=tick_idx)
+            finally:
+                context.detach(token)
+                span.end()
+
+        t3 = now()
+        to_send: Action | None = None
+        if action is not None:
+            span = tr.start_span(semconv.SPAN_SAFETY_CHECK)
+            token = context.attach(trace.set_span_in_context(span))
+            try:
+                replacement = self.safety_client.check_action(action)
+                to_send = action if replacement is None else replacement
+            except ROSSafetyViolation as exc:
+                withheld = "safety"
+                violations.append(exc.check_name)
+                self._on_violation(span, exc)
+            except ROSEStopRequested as exc:
+                withheld = self._estop(exc)
+            finally:
+                context.detach(token)
+                span.end()
+
+        t4 = now()
+        applied = False
+        if to_send is not None:
+            if self._deadline_allows_send():
+                span = tr.start_span(semconv.SPAN_HAL_SEND_ACTION, attributes=self._hal_attrs)
+                try:
+                    self.hal.send_action(to_send)
+                    applied = True
+                    if self._safety_commit is not None:
+                        self._safety_commit(to_send)
+                except ROSError as exc:
+                    withheld = "hal_error"
+                    _record_error(span, exc)
+                    _log.warning("send_action failed", error=str(exc), tick=tick_idx)
+                finally:
+                    span.end()
+                metrics.record_histogram_ms(
+                    semconv.METRIC_HAL_SEND_ACTION_DURATION, (now() - t4) * 1e3, self._hal_attrs
+                )
+            else:
+                withheld = "deadline"
+                trace.get_current_span().add_event(semconv.EVENT_ACTION_DROPPED, {"reason": "deadline"})
+        t5 = now()
+
+        return TickResult(
+            tick_idx=tick_idx,
+            sensors_ms=(t1 - t0) * 1e3,
+            world_state_ms=(t2 - t1) * 1e3,
+            inference_ms=(t3 - t2) * 1e3,
+            safety_ms=(t4 - t3) * 1e3,
+            hal_ms=(t5 - t4) * 1e3,
+            action_applied=applied,
+            withheld_reason=withheld,
+            safety_violations=violations,
+            stale_sensors=stale,
+            requested_action=action.first if action is not None else None,
+            sent_action=to_send.first if applied and to_send is not None else None,
+        )
+
+    def _read_sensor(self, reader: SensorReader) -> str | None:
+        """Move one reader's latest frame into the world state; returns its id when stale."""
+        span = self._tracer.start_span(semconv.SPAN_SENSORS_READ)
+        try:
+            frame = reader.read_latest()
+        except ROSPerceptionStale as exc:
+            self._on_stale(span, exc)
+            return reader.sensor_id
+        except ROSError as exc:
+            self.aggregator.set_error(reader.sensor_id, str(exc))
+            _record_error(span, exc)
+            return None
+        else:
+            self.aggregator.update_frame(frame)
+            age_ms = frame.age_ms(self._clock.now_ns())
+            metrics.record_histogram_ms(semconv.METRIC_SENSORS_AGE, age_ms, {semconv.ATTR_SENSOR_ID: reader.sensor_id})
+            if span.is_recording():
+                span.set_attributes({semconv.ATTR_SENSOR_ID: reader.sensor_id, semconv.ATTR_SENSOR_AGE_MS: age_ms})
+            return None
+        finally:
+            span.end()
+
+    # -- fault handling ------------------------------------------------------------------
+
+    def _on_stale(self, span: trace.Span, exc: ROSPerceptionStale) -> None:
+        attrs: dict[str, Any] = {semconv.ATTR_SENSOR_ID: exc.sensor_id}
+        if exc.age_ms is not None:
+            attrs[semconv.ATTR_SENSOR_AGE_MS] = exc.age_ms
+        span.add_event(semconv.EVENT_SENSOR_STALE, attrs)
+        metrics.add(semconv.METRIC_SENSORS_STALE_READS, 1, {semconv.ATTR_SENSOR_ID: exc.sensor_id})
+
+    def _on_violation(self, span: trace.Span, exc: ROSSafetyViolation) -> None:
+        attrs = {semconv.ATTR_SAFETY_CHECK_NAME: exc.check_name, semconv.ATTR_SAFETY_SEVERITY: exc.severity}
+        span.record_exception(exc)
+        span.add_event(semconv.EVENT_SAFETY_VIOLATION, {**attrs, "message": str(exc)})
+        metrics.add(semconv.METRIC_SAFETY_VIOLATIONS, 1, attrs)
+        _log.warning("action rejected by safety", check=exc.check_name, reason=str(exc))
+
+    def _estop(self, exc: ROSEStopRequested) -> str:
+        """E-stop the robot and stop the loop; returns the withheld reason."""
+        span = trace.get_current_span()
+        span.add_event(semconv.EVENT_ESTOP_REQUESTED, {"reason": str(exc)})
+        _log.error("e-stop requested", reason=str(exc))
+        estop_span = self._tracer.start_span(semconv.SPAN_HAL_ESTOP, attributes=self._hal_attrs)
+        try:
+            self.hal.estop()
+        except Exception as estop_exc:  # still stop the loop even if the HAL cannot confirm
+            _record_error(estop_span, estop_exc)
+            _log.error("HAL estop failed", error=str(estop_exc))
+        finally:
+            estop_span.end()
+        self.request_stop("estop")
+        return "estop"
+
+
+def _record_error(span: trace.Span, exc: BaseException) -> None:
+    span.record_exception(exc)
+    span.set_status(Status(StatusCode.ERROR, str(exc)))

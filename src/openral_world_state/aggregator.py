@@ -1,0 +1,246 @@
+"""``WorldStateAggregator``: the latest joint state and frames, turned into one ``WorldState`` per tick."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from opentelemetry.trace import Span
+from opentelemetry.util.types import Attributes
+
+from openral_core import (
+    ComponentDiagnostics,
+    JointState,
+    ROSConfigError,
+    SensorFrame,
+    SensorReaderConfig,
+    WorldState,
+)
+from openral_observability import metrics, semconv
+from openral_observability.tracing import tracer
+
+JOINT_STATE_COMPONENT = "joint_state"
+"""Component name of the robot's joint state in ``WorldState.diagnostics``."""
+
+# OpenTelemetry's own key for a failure's text; semconv has no world-state error attribute.
+_ATTR_ERROR_MESSAGE = "exception.message"
+
+
+@dataclass(slots=True)
+class _Component:
+    """One declared component, its limits and the health it had at the previous snapshot."""
+
+    name: str
+    max_age_ms: float
+    required: bool
+    attributes: Attributes
+    stale_latched: bool = False
+    error_latched: bool = False
+    unhealthy: bool = False
+
+
+class WorldStateAggregator:
+    """Holds the freshest joint state and the latest frame of each declared sensor.
+
+    Capture threads call :meth:`update_frame`, the tick thread calls :meth:`update_joint_state`
+    and :meth:`snapshot`; all methods are thread-safe and hold one lock only long enough to
+    swap or copy references, so a snapshot never waits on a capture and never copies pixels.
+
+    Freshness is measured from each sample's *capture* stamp (``SensorFrame.stamp_ns``,
+    ``JointState.stamp_ns``) to ``clock()``, never from when it arrived here: a sample is
+    stale when it is missing, older than its ``max_age_ms``, or stamped further than
+    ``max_age_ms`` in the future (a backend stamping on another clock is never "fresh forever").
+    A component with an error set (:meth:`set_error`) is unhealthy until :meth:`clear_error`.
+
+    Telemetry, emitted inside the ``world_state.snapshot`` span, only on transitions:
+
+    - ``openral.event.staleness_latched`` (component, age when known) the first snapshot a
+      component is stale after having been fresh. Every component starts out fresh, so a
+      sensor that has not delivered by the first snapshot latches once then.
+    - ``openral.event.error_latched`` (component, message) the first snapshot that sees an
+      error set; setting it again, or changing its text, emits nothing until it is cleared.
+    - Recovery emits no event; the up-down counter ``openral.world_state.components_stale``
+      goes +1 when a component becomes unhealthy (stale or in error) and -1 when it is healthy again.
+
+    Every snapshot records each component's age on the ``openral.world_state.staleness_ms``
+    histogram.
+
+    Args:
+        joint_max_age_ms: Largest joint-state age that counts as fresh.
+        joint_required: Whether a stale joint state makes the tick's action withheld.
+        sensors: The deployment's sensors; ``sensor_id``, ``max_age_ms`` and ``required`` are used.
+        clock: Nanosecond clock shared with the capture stamps (``time.monotonic_ns``).
+
+    Raises:
+        ROSConfigError: A sensor id is repeated or is ``joint_state``, or ``joint_max_age_ms`` is not positive.
+    """
+
+    def __init__(
+        self,
+        *,
+        joint_max_age_ms: float = 100.0,
+        joint_required: bool = True,
+        sensors: Sequence[SensorReaderConfig] = (),
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        if not joint_max_age_ms > 0:
+            raise ROSConfigError(
+                f"must be above 0 ms, got {joint_max_age_ms}", field="joint_max_age_ms", hint="use e.g. 100"
+            )
+        components = [_component(JOINT_STATE_COMPONENT, joint_max_age_ms, joint_required)]
+        for index, sensor in enumerate(sensors):
+            if any(c.name == sensor.sensor_id for c in components):
+                raise ROSConfigError(
+                    f"sensor id '{sensor.sensor_id}' is already used by another component",
+                    field=f"sensors[{index}].sensor_id",
+                    hint=f"give each sensor its own id, other than '{JOINT_STATE_COMPONENT}'",
+                )
+            components.append(_component(sensor.sensor_id, sensor.max_age_ms, sensor.required))
+        self._components: tuple[_Component, ...] = tuple(components)
+        self._sensor_ids = frozenset(c.name for c in components[1:])
+        self._has_sensors = bool(self._sensor_ids)
+        self._clock = clock
+        self._tracer = tracer()  # the API's proxy tracer follows a provider installed later
+        self._lock = threading.Lock()
+        self._snapshot_lock = threading.Lock()
+        self._joint_state: JointState | None = None
+        self._frames: dict[str, SensorFrame] = {}
+        self._errors: dict[str, str] = {}
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        """Declared component names: ``joint_state`` first, then the sensors in declaration order."""
+        return tuple(c.name for c in self._components)
+
+    def update_joint_state(self, js: JointState) -> None:
+        """Keep ``js`` as the current joint state unless the one held was captured later."""
+        with self._lock:
+            held = self._joint_state
+            if held is None or js.stamp_ns >= held.stamp_ns:
+                self._joint_state = js
+
+    def update_frame(self, frame: SensorFrame) -> None:
+        """Keep ``frame`` (the object itself) as its sensor's latest, unless the one held was captured later.
+
+        Raises:
+            ROSConfigError: ``frame.sensor_id`` is not a declared sensor.
+        """
+        sensor_id = frame.sensor_id
+        if sensor_id not in self._sensor_ids:
+            raise self._unknown(sensor_id, declared=sorted(self._sensor_ids), what="sensor")
+        with self._lock:
+            held = self._frames.get(sensor_id)
+            if held is None or frame.stamp_ns >= held.stamp_ns:
+                self._frames[sensor_id] = frame
+
+    def set_error(self, component: str, message: str) -> None:
+        """Mark ``component`` unhealthy with ``message`` until :meth:`clear_error`.
+
+        Raises:
+            ROSConfigError: ``component`` is not declared.
+        """
+        self._check_component(component)
+        with self._lock:
+            self._errors[component] = message
+
+    def clear_error(self, component: str) -> None:
+        """Remove the error set on ``component``; a no-op when none is set.
+
+        Raises:
+            ROSConfigError: ``component`` is not declared.
+        """
+        self._check_component(component)
+        with self._lock:
+            self._errors.pop(component, None)
+
+    def snapshot(self, *, task: str | None = None) -> WorldState:
+        """A ``WorldState`` of the latest samples with diagnostics for every declared component.
+
+        ``image_frames`` holds the very frame objects passed to :meth:`update_frame` (no copy),
+        only for sensors that delivered one; it is ``None`` when no sensors are declared.
+        ``stamp_ns`` is ``clock()`` read after the samples were taken, so ages are never
+        negative for samples stamped on the same clock.
+        """
+        with self._snapshot_lock, self._tracer.start_as_current_span(semconv.SPAN_WORLD_STATE_SNAPSHOT) as span:
+            with self._lock:
+                joint_state = self._joint_state
+                frames = dict(self._frames)
+                errors = dict(self._errors) if self._errors else None
+                now_ns = self._clock()
+            diagnostics: dict[str, ComponentDiagnostics] = {}
+            for component in self._components:
+                if component.name == JOINT_STATE_COMPONENT:
+                    stamp_ns = None if joint_state is None else joint_state.stamp_ns
+                else:
+                    frame = frames.get(component.name)
+                    stamp_ns = None if frame is None else frame.stamp_ns
+                diagnostics[component.name] = self._diagnose(component, stamp_ns, now_ns, errors, span)
+            # Plain (validated) construction: pydantic-core checks these flat fields faster than
+            # ``model_construct`` builds them, and nested model instances pass through unvalidated and uncopied.
+            return WorldState(
+                stamp_ns=now_ns,
+                joint_state=joint_state,
+                image_frames=frames if self._has_sensors else None,
+                diagnostics=diagnostics,
+                task=task,
+            )
+
+    def _diagnose(
+        self,
+        component: _Component,
+        stamp_ns: int | None,
+        now_ns: int,
+        errors: dict[str, str] | None,
+        span: Span,
+    ) -> ComponentDiagnostics:
+        limit = component.max_age_ms
+        if stamp_ns is None:
+            age_ms: float | None = None
+            stale = True
+        else:
+            age_ms = (now_ns - stamp_ns) / 1e6
+            stale = age_ms > limit or age_ms < -limit
+            metrics.record_histogram_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
+        error = errors.get(component.name) if errors else None
+
+        if stale and not component.stale_latched:
+            attributes = dict(component.attributes or {})
+            if age_ms is not None:
+                attributes[semconv.ATTR_SENSOR_AGE_MS] = age_ms
+            span.add_event(semconv.EVENT_STALENESS_LATCHED, attributes)
+        component.stale_latched = stale
+        if error is not None and not component.error_latched:
+            span.add_event(semconv.EVENT_ERROR_LATCHED, {**(component.attributes or {}), _ATTR_ERROR_MESSAGE: error})
+        component.error_latched = error is not None
+        unhealthy = stale or error is not None
+        if unhealthy != component.unhealthy:
+            metrics.up_down_counter(semconv.METRIC_WORLD_STATE_COMPONENTS_STALE).add(
+                1 if unhealthy else -1, component.attributes
+            )
+            component.unhealthy = unhealthy
+
+        return ComponentDiagnostics(
+            component=component.name,
+            age_ms=age_ms,
+            max_age_ms=limit,
+            stale=stale,
+            required=component.required,
+            error=error,
+        )
+
+    def _check_component(self, component: str) -> None:
+        if component != JOINT_STATE_COMPONENT and component not in self._sensor_ids:
+            raise self._unknown(component, declared=list(self.components), what="component")
+
+    @staticmethod
+    def _unknown(name: str, *, declared: list[str], what: str) -> ROSConfigError:
+        return ROSConfigError(
+            f"unknown {what} '{name}'; declared: {', '.join(declared) or 'none'}",
+            hint="declare it in the deployment's sensors",
+        )
+
+
+def _component(name: str, max_age_ms: float, required: bool) -> _Component:
+    return _Component(name=name, max_age_ms=max_age_ms, required=required, attributes={semconv.ATTR_COMPONENT: name})

@@ -1,0 +1,135 @@
+"""The openral command: exit codes, one clear line for bad config, JSON on stdout only."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from openral_cli.main import cli
+
+ROOT = Path(__file__).resolve().parents[2]
+TWIN = ROOT / "deployments" / "so101_twin_hello.yaml"
+
+NULL_DEPLOYMENT = """
+name: null_bench
+rate_hz: 200
+hal: {robot_id: so101_follower, adapter: null}
+vla: {id: noop}
+safety: {client: envelope}
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "robot.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_deploy_json_prints_only_the_run_result(tmp_path: Path) -> None:
+    path = write(tmp_path, NULL_DEPLOYMENT)
+    proc = subprocess.run(
+        [sys.executable, "-m", "openral_cli", "deploy", "--config", str(path), "--max-ticks", "40", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout)
+    assert result["n_ticks"] == 40
+    assert result["stop_reason"] == "max_ticks"
+    assert result["rate_hz"] == 200
+    # An absolute schedule never runs faster than its rate, whatever the load.
+    assert 0 < result["effective_rate_hz"] <= 200 * 1.001
+
+
+def test_deploy_human_summary(tmp_path: Path) -> None:
+    path = write(tmp_path, NULL_DEPLOYMENT)
+    out = CliRunner().invoke(cli, ["deploy", "--config", str(path), "--duration", "0.1"])
+    assert out.exit_code == 0, out.output
+    assert "stopped: duration" in out.output
+    assert "achieved" in out.output
+
+
+@pytest.mark.parametrize(
+    ("text", "field", "fix"),
+    [
+        ("hal: {robot_id: so101_follower}\nvla: {id: helo}\n", "vla.id", "did you mean 'hello'"),
+        (
+            "hal: {robot_id: so101_follower}\nvla: {id: hello}\nrate_hz: 30\nsensors: [{sensor_id: a, fpss: 3}]\n",
+            "sensors[0].fpss",
+            "did you mean 'fps'",
+        ),
+        ("hal: {robot_id: so101_folower}\nvla: {id: hello}\n", "hal.robot_id", "so101_follower"),
+        ("hal: {robot_id: so101_follower}\nvla: {id: hello}\nrate_hz: -3\n", "rate_hz", "greater than 0"),
+        ("hal: {robot_id: so101_follower}\n", "vla", "missing"),
+    ],
+)
+def test_bad_config_exits_2_with_one_line_naming_field_and_fix(
+    tmp_path: Path, text: str, field: str, fix: str
+) -> None:
+    path = write(tmp_path, text)
+    for command in (["validate", str(path)], ["deploy", "--config", str(path), "--max-ticks", "1"]):
+        out = CliRunner().invoke(cli, command)
+        assert out.exit_code == 2, out.output
+        lines = [line for line in out.output.splitlines() if line.strip()]
+        assert len(lines) == 1, out.output
+        assert field in lines[0]
+        assert fix in lines[0]
+        assert "Traceback" not in out.output
+
+
+def test_debug_shows_traceback(tmp_path: Path) -> None:
+    path = write(tmp_path, "hal: {robot_id: so101_follower}\nvla: {id: helo}\n")
+    out = CliRunner().invoke(cli, ["--debug", "validate", str(path)])
+    assert out.exit_code == 2
+    assert "Traceback" in out.output
+
+
+def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
+    out = CliRunner().invoke(cli, ["validate", str(tmp_path / "nope.yaml")])
+    assert out.exit_code == 2
+    assert "not found" in out.output
+
+
+def test_validate_accepts_the_shipped_twin_deployment() -> None:
+    pytest.importorskip("mujoco", reason="needs the 'twin' extra")
+    out = CliRunner().invoke(cli, ["validate", str(TWIN)])
+    assert out.exit_code == 0, out.output
+    assert "so101_follower" in out.output
+
+
+def test_schema_is_json_schema_of_the_deployment(tmp_path: Path) -> None:
+    out = CliRunner().invoke(cli, ["schema"])
+    assert out.exit_code == 0
+    schema = json.loads(out.output)
+    assert schema["title"] == "RobotEnvironment"
+    assert {"hal", "vla"} <= set(schema["required"])
+    target = tmp_path / "schema.json"
+    assert CliRunner().invoke(cli, ["schema", "-o", str(target)]).exit_code == 0
+    assert json.loads(target.read_text()) == schema
+
+
+def test_sigint_finishes_the_tick_and_exits_130(tmp_path: Path) -> None:
+    import signal
+    import time
+
+    path = write(tmp_path, NULL_DEPLOYMENT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "openral_cli", "deploy", "--config", str(path), "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(2.0)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 130, stderr
+    result = json.loads(stdout)
+    assert result["stop_reason"] == "signal:SIGINT"
+    assert result["n_ticks"] > 0

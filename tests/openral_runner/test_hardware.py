@@ -1,0 +1,295 @@
+"""HardwareRunner: the five-phase tick, faults withheld before actuation, rollback, e-stop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from openral_core import (
+    Action,
+    DeadlineOverrunPolicy,
+    ROSEStopRequested,
+    ROSHardwareError,
+    ROSSafetyViolation,
+    SafetyEnvelope,
+    SensorReaderConfig,
+)
+from openral_hal.testing import RecordingHAL
+from openral_rskill.testing import ScriptedSkill
+from openral_runner.hardware import HardwareRunner
+from openral_runner.testing import FakeClock, ScriptedReader
+from openral_world_state import WorldStateAggregator
+
+JOINTS = ["j0", "j1", "j2"]
+RATE = 30.0
+PERIOD = 1.0 / RATE
+
+
+class RejectingSafety:
+    """Rejects the actions whose first target is negative; e-stops on a target of 99."""
+
+    envelope = SafetyEnvelope()
+
+    def __init__(self) -> None:
+        self.checked: list[Action] = []
+
+    def check_action(self, action: Action) -> Action | None:
+        self.checked.append(action)
+        if action.first[0] == 99.0:
+            raise ROSEStopRequested("operator pressed the stop button")
+        if action.first[0] < 0:
+            raise ROSSafetyViolation(f"j0 target {action.first[0]} below 0", check_name="joint_limit")
+        return None
+
+
+class HalvingSafety:
+    """Replaces each action with one whose targets are halved (a clamping client)."""
+
+    envelope = SafetyEnvelope()
+
+    def check_action(self, action: Action) -> Action | None:
+        return action.model_copy(update={"targets": [[v / 2 for v in action.first]]})
+
+
+def rows(*values: float) -> list[list[float]]:
+    return [[v, 0.0, 0.0] for v in values]
+
+
+def build(
+    clock: FakeClock,
+    *,
+    skill: ScriptedSkill | None = None,
+    readers: list[ScriptedReader] | None = None,
+    sensor_configs: list[SensorReaderConfig] | None = None,
+    hal: RecordingHAL | None = None,
+    safety: object | None = None,
+    **kwargs: object,
+) -> tuple[HardwareRunner, RecordingHAL, ScriptedSkill]:
+    hal = hal or RecordingHAL(JOINTS, clock_ns=clock.now_ns)
+    skill = skill or ScriptedSkill(JOINTS)
+    skill.configure()
+    skill.activate()
+    aggregator = WorldStateAggregator(joint_max_age_ms=100.0, sensors=sensor_configs or [], clock=clock.now_ns)
+    runner = HardwareRunner(
+        hal=hal,
+        skill=skill,
+        aggregator=aggregator,
+        sensor_readers=readers or [],
+        safety_client=safety,  # type: ignore[arg-type]
+        rate_hz=RATE,
+        clock=clock,
+        **kwargs,  # type: ignore[arg-type]
+    )
+    return runner, hal, skill
+
+
+def test_tick_runs_five_phases_and_sends_the_action() -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS, actions=rows(0.1, 0.2), on_step=lambda _i: clock.advance(0.005))
+    runner, hal, _ = build(clock, skill=skill)
+    runner.activate()
+    result = runner.run(2)
+    assert result.n_ticks == 2
+    assert [a.first[0] for a in hal.sent] == [0.1, 0.2]
+    tick = runner.recent_ticks[0]
+    assert tick.action_applied
+    assert tick.inference_ms == pytest.approx(5.0)
+    assert tick.sent_action == [0.1, 0.0, 0.0]
+    # The skill saw the measured joint state read in this very tick.
+    assert skill.seen[1].joint_state is not None
+    assert skill.seen[1].joint_state.positions == [0.1, 0.0, 0.0]
+    assert hal.calls[:3] == ["connect", "read_state", "send_action"]
+
+
+def test_frames_reach_the_skill_without_copy() -> None:
+    clock = FakeClock()
+    cams = [ScriptedReader("front", clock, width=8, height=6), ScriptedReader("wrist", clock, width=4, height=2)]
+    configs = [SensorReaderConfig(sensor_id="front"), SensorReaderConfig(sensor_id="wrist")]
+    runner, _, skill = build(clock, readers=cams, sensor_configs=configs)
+    runner.activate()
+    runner.run(3)
+    frames = skill.seen[-1].image_frames
+    assert frames is not None
+    assert set(frames) == {"front", "wrist"}
+    assert frames["front"].as_array().shape == (6, 8, 3)
+    assert np.shares_memory(frames["front"].as_array(), np.frombuffer(cams[0]._pixels, np.uint8))
+
+
+def test_rejecting_safety_client_withholds_and_loop_continues() -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS, actions=rows(0.1, -0.5, 0.3))
+    safety = RejectingSafety()
+    runner, hal, _ = build(clock, skill=skill, safety=safety)
+    runner.activate()
+    result = runner.run(3)
+    assert [a.first[0] for a in hal.sent] == [0.1, 0.3]
+    assert result.n_ticks == 3
+    assert result.safety_violations == 1
+    rejected = runner.recent_ticks[1]
+    assert not rejected.action_applied
+    assert rejected.withheld_reason == "safety"
+    assert rejected.safety_violations == ["joint_limit"]
+    assert rejected.requested_action == [-0.5, 0.0, 0.0]
+    assert rejected.sent_action is None
+
+
+def test_clamping_client_records_requested_and_sent() -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS, actions=rows(0.8))
+    runner, hal, _ = build(clock, skill=skill, safety=HalvingSafety())
+    runner.activate()
+    runner.run(1)
+    tick = runner.recent_ticks[0]
+    assert tick.requested_action == [0.8, 0.0, 0.0]
+    assert tick.sent_action == [0.4, 0.0, 0.0]
+    assert hal.sent[0].first == [0.4, 0.0, 0.0]
+
+
+def test_estop_stops_loop_and_calls_hal_estop() -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS, actions=rows(0.1, 99.0, 0.2, 0.3))
+    runner, hal, _ = build(clock, skill=skill, safety=RejectingSafety())
+    runner.activate()
+    result = runner.run(10)
+    assert result.stop_reason == "estop"
+    assert result.n_ticks == 2
+    assert hal.estop_calls == 1
+    assert [a.first[0] for a in hal.sent] == [0.1]
+    assert runner.recent_ticks[-1].withheld_reason == "estop"
+
+
+def test_estop_from_the_skill_is_not_an_ordinary_failure() -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS, raise_on={1: ROSEStopRequested("skill saw a person")})
+    runner, hal, _ = build(clock, skill=skill)
+    runner.activate()
+    result = runner.run(10)
+    assert result.stop_reason == "estop"
+    assert hal.estop_calls == 1
+    assert result.failed_ticks == 0
+
+
+def test_reader_failing_in_activate_rolls_back() -> None:
+    clock = FakeClock()
+    first = ScriptedReader("a", clock)
+    second = ScriptedReader("b", clock, fail_open=ROSHardwareError("camera b unplugged"))
+    third = ScriptedReader("c", clock)
+    configs = [SensorReaderConfig(sensor_id=s) for s in "abc"]
+    runner, hal, _ = build(clock, readers=[first, second, third], sensor_configs=configs)
+    with pytest.raises(ROSHardwareError, match="unplugged"):
+        runner.activate()
+    assert not hal.is_connected
+    assert hal.disconnect_calls == 1
+    assert first.close_calls == 1
+    assert not first.is_open
+    assert third.open_calls == 0
+    assert not runner.is_active
+
+
+def test_hal_connect_failure_opens_no_reader() -> None:
+    clock = FakeClock()
+    reader = ScriptedReader("a", clock)
+    hal = RecordingHAL(JOINTS, clock_ns=clock.now_ns, fail_connect=ROSHardwareError("no bus"))
+    runner, _, _ = build(clock, readers=[reader], sensor_configs=[SensorReaderConfig(sensor_id="a")], hal=hal)
+    with pytest.raises(ROSHardwareError):
+        runner.activate()
+    assert reader.open_calls == 0
+
+
+def test_deactivate_closes_everything_even_if_one_close_fails() -> None:
+    clock = FakeClock()
+    reader = ScriptedReader("a", clock)
+
+    def broken_close() -> None:
+        raise ROSHardwareError("close failed")
+
+    other = ScriptedReader("b", clock)
+    other.close = broken_close  # type: ignore[method-assign]
+    configs = [SensorReaderConfig(sensor_id="a"), SensorReaderConfig(sensor_id="b")]
+    runner, hal, _ = build(clock, readers=[reader, other], sensor_configs=configs)
+    runner.activate()
+    runner.deactivate()
+    assert not reader.is_open
+    assert not hal.is_connected
+    runner.deactivate()  # idempotent
+    assert hal.disconnect_calls == 1
+
+
+def test_stale_required_sensor_withholds_the_action() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("cam", clock, age_ms=500.0, max_age_ms=100.0)
+    runner, hal, skill = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="cam")])
+    runner.activate()
+    result = runner.run(2)
+    assert hal.sent == []
+    assert skill.seen == []  # no inference on a world state with a stale required sensor
+    assert result.stale_reads == 2
+    assert runner.recent_ticks[0].withheld_reason == "stale_sensor"
+    assert runner.recent_ticks[0].stale_sensors == ["cam"]
+
+
+def test_stale_optional_sensor_is_reported_and_tick_goes_on() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("cam", clock, age_ms=500.0, max_age_ms=100.0)
+    config = SensorReaderConfig(sensor_id="cam", required=False)
+    runner, hal, skill = build(clock, readers=[cam], sensor_configs=[config])
+    runner.activate()
+    result = runner.run(2)
+    assert len(hal.sent) == 2
+    assert result.stale_reads == 2
+    diag = skill.seen[0].diagnostics["cam"]
+    assert diag.stale
+    assert not diag.required
+
+
+def test_failed_read_state_withholds_and_is_counted() -> None:
+    clock = FakeClock()
+    hal = RecordingHAL(JOINTS, clock_ns=clock.now_ns, fail_read_on={1})
+    skill = ScriptedSkill(JOINTS, actions=rows(0.1, 0.2, 0.3))
+    runner, _, _ = build(clock, skill=skill, hal=hal)
+    runner.activate()
+    result = runner.run(3)
+    assert runner.recent_ticks[1].withheld_reason == "read_state"
+    assert result.failed_ticks == 1
+    assert len(hal.sent) == 2
+
+
+def test_skill_exception_withholds_then_stops_after_consecutive_failures() -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS, raise_on={2: RuntimeError("CUDA out of memory")})
+    runner, hal, _ = build(clock, skill=skill, max_consecutive_failures=3)
+    runner.activate()
+    result = runner.run(20)
+    # The skill's error latch keeps every later step failing: ticks 2, 3, 4 fail, then the run stops.
+    assert result.stop_reason == "faults"
+    assert result.n_ticks == 5
+    assert len(hal.sent) == 2
+    assert {t.withheld_reason for t in list(runner.recent_ticks)[2:]} == {"skill_error"}
+
+
+def test_drop_policy_never_sends_late_action_to_hal() -> None:
+    clock = FakeClock()
+
+    def slow_second_step(i: int) -> None:
+        if i == 1:
+            clock.advance(1.5 * PERIOD)
+
+    skill = ScriptedSkill(JOINTS, actions=rows(0.1, 0.2, 0.3), on_step=slow_second_step)
+    runner, hal, _ = build(clock, skill=skill, deadline_overrun_policy=DeadlineOverrunPolicy.DROP)
+    runner.activate()
+    result = runner.run(3)
+    assert [a.first[0] for a in hal.sent] == [0.1, 0.3]
+    assert result.dropped_actions == 1
+    assert runner.recent_ticks[1].withheld_reason == "deadline"
+
+
+def test_hal_send_failure_is_a_fault_not_a_crash() -> None:
+    clock = FakeClock()
+    hal = RecordingHAL(JOINTS, clock_ns=clock.now_ns, fail_send_on={0})
+    runner, _, _ = build(clock, hal=hal)
+    runner.activate()
+    result = runner.run(3)
+    assert runner.recent_ticks[0].withheld_reason == "hal_error"
+    assert not runner.recent_ticks[0].action_applied
+    assert result.failed_ticks == 1
+    assert len(hal.sent) == 2

@@ -1,0 +1,565 @@
+"""WorldStateAggregator: freshness from capture stamps, latching telemetry, zero-copy frames, thread safety."""
+
+from __future__ import annotations
+
+import sys
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from opentelemetry import metrics, trace
+from opentelemetry.sdk.metrics import MeterProvider
+from opentelemetry.sdk.metrics.export import InMemoryMetricReader
+from opentelemetry.sdk.trace import ReadableSpan, TracerProvider
+from opentelemetry.sdk.trace.export import SimpleSpanProcessor
+from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
+
+from openral_core import JointState, ROSConfigError, SensorFrame, SensorReaderConfig
+from openral_observability import semconv
+from openral_world_state import JOINT_STATE_COMPONENT, WorldStateAggregator
+
+MS = 1_000_000
+T0 = 1_000 * MS
+
+_SPANS = InMemorySpanExporter(max_spans=10_000)
+_METRICS: InMemoryMetricReader | None = None
+_installed = False
+
+
+def _install_telemetry() -> None:
+    """Attach in-memory exporters to the global providers, setting them only if nobody has."""
+    global _installed, _METRICS  # noqa: PLW0603
+    if _installed:
+        return
+    provider = trace.get_tracer_provider()
+    if isinstance(provider, TracerProvider):
+        provider.add_span_processor(SimpleSpanProcessor(_SPANS))
+    else:
+        sdk_provider = TracerProvider()
+        sdk_provider.add_span_processor(SimpleSpanProcessor(_SPANS))
+        trace.set_tracer_provider(sdk_provider)
+    if not isinstance(metrics.get_meter_provider(), MeterProvider):
+        _METRICS = InMemoryMetricReader()
+        metrics.set_meter_provider(MeterProvider(metric_readers=[_METRICS]))
+    _installed = True
+
+
+@pytest.fixture
+def spans() -> Iterator[InMemorySpanExporter]:
+    _install_telemetry()
+    _SPANS.clear()
+    yield _SPANS
+    _SPANS.clear()
+
+
+@pytest.fixture
+def metric_reader() -> InMemoryMetricReader:
+    _install_telemetry()
+    if _METRICS is None:
+        pytest.skip("another module installed the global MeterProvider first; cannot attach a reader")
+    return _METRICS
+
+
+class FakeClock:
+    def __init__(self, now_ns: int = T0) -> None:
+        self.now_ns = now_ns
+
+    def __call__(self) -> int:
+        return self.now_ns
+
+    def advance_ms(self, ms: float) -> None:
+        self.now_ns += int(ms * MS)
+
+
+def _frame(sensor_id: str, stamp_ns: int, data: Any = None, seq: int = 0) -> SensorFrame:
+    if data is None:
+        data = np.zeros((2, 2, 3), np.uint8)
+    return SensorFrame(sensor_id=sensor_id, stamp_ns=stamp_ns, width=2, height=2, data=data, seq=seq)
+
+
+def _joints(stamp_ns: int, value: float = 0.0) -> JointState:
+    return JointState(names=["a", "b"], positions=[value, -value], stamp_ns=stamp_ns)
+
+
+def _cams(*specs: tuple[str, float, bool]) -> list[SensorReaderConfig]:
+    return [SensorReaderConfig(sensor_id=sid, max_age_ms=age, required=req) for sid, age, req in specs]
+
+
+def _aggregator(clock: FakeClock, joint_max_age_ms: float = 100.0) -> WorldStateAggregator:
+    return WorldStateAggregator(
+        joint_max_age_ms=joint_max_age_ms,
+        sensors=_cams(("front", 50.0, True), ("wrist", 200.0, False)),
+        clock=clock,
+    )
+
+
+def _events(spans: InMemorySpanExporter) -> list[tuple[str, dict[str, Any]]]:
+    out: list[tuple[str, dict[str, Any]]] = []
+    finished: tuple[ReadableSpan, ...] = spans.get_finished_spans()
+    for span in finished:
+        if span.name == semconv.SPAN_WORLD_STATE_SNAPSHOT:
+            out.extend((event.name, dict(event.attributes or {})) for event in span.events)
+    return out
+
+
+def _updown(reader: InMemoryMetricReader) -> dict[str, int]:
+    return _points(reader, semconv.METRIC_WORLD_STATE_COMPONENTS_STALE, "value")
+
+
+def _hist_counts(reader: InMemoryMetricReader) -> dict[str, int]:
+    return _points(reader, semconv.METRIC_WORLD_STATE_STALENESS, "count")
+
+
+def _points(reader: InMemoryMetricReader, name: str, field: str) -> dict[str, int]:
+    data = reader.get_metrics_data()
+    out: dict[str, int] = {}
+    if data is None:
+        return out
+    for resource in data.resource_metrics:
+        for scope in resource.scope_metrics:
+            for metric in scope.metrics:
+                if metric.name != name:
+                    continue
+                for point in metric.data.data_points:
+                    component = str((point.attributes or {})[semconv.ATTR_COMPONENT])
+                    out[component] = out.get(component, 0) + int(getattr(point, field))
+    return out
+
+
+def _delta(after: dict[str, int], before: dict[str, int]) -> dict[str, int]:
+    return {
+        k: after.get(k, 0) - before.get(k, 0) for k in set(after) | set(before) if after.get(k, 0) != before.get(k, 0)
+    }
+
+
+# --- diagnostics ---------------------------------------------------------------------------------
+
+
+def test_every_declared_component_is_diagnosed_before_any_sample() -> None:
+    agg = _aggregator(FakeClock())
+    ws = agg.snapshot()
+    assert list(ws.diagnostics) == [JOINT_STATE_COMPONENT, "front", "wrist"]
+    assert agg.components == (JOINT_STATE_COMPONENT, "front", "wrist")
+    for name, diag in ws.diagnostics.items():
+        assert diag.component == name
+        assert diag.stale, name
+        assert diag.age_ms is None, name
+    assert ws.diagnostics["front"].max_age_ms == 50.0
+    assert ws.diagnostics["wrist"].max_age_ms == 200.0
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].max_age_ms == 100.0
+    assert ws.diagnostics["wrist"].required is False
+    assert ws.stale_required == [JOINT_STATE_COMPONENT, "front"]
+    assert ws.image_frames == {}
+    assert ws.joint_state is None
+
+
+def test_without_sensors_image_frames_is_none() -> None:
+    clock = FakeClock()
+    agg = WorldStateAggregator(clock=clock)
+    agg.update_joint_state(_joints(T0))
+    ws = agg.snapshot()
+    assert ws.image_frames is None
+    assert list(ws.diagnostics) == [JOINT_STATE_COMPONENT]
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].healthy
+
+
+def test_fresh_samples_are_healthy_with_exact_age() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    agg.update_joint_state(_joints(T0))
+    agg.update_frame(_frame("front", T0 + 10 * MS))
+    agg.update_frame(_frame("wrist", T0))
+    clock.advance_ms(40)
+    ws = agg.snapshot(task="pick the cube")
+    assert ws.stamp_ns == clock.now_ns
+    assert ws.task == "pick the cube"
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].age_ms == pytest.approx(40.0)
+    assert ws.diagnostics["front"].age_ms == pytest.approx(30.0)
+    assert ws.stale_components == []
+    assert all(d.error is None for d in ws.diagnostics.values())
+
+
+def test_staleness_is_measured_from_capture_stamp_not_arrival() -> None:
+    clock = FakeClock(T0 + 1_000 * MS)
+    agg = _aggregator(clock)
+    # Both arrive right now, but were captured long ago.
+    agg.update_frame(_frame("front", clock.now_ns - 60 * MS))
+    agg.update_joint_state(_joints(clock.now_ns - 150 * MS))
+    ws = agg.snapshot()
+    assert ws.diagnostics["front"].stale
+    assert ws.diagnostics["front"].age_ms == pytest.approx(60.0)
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].stale
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].age_ms == pytest.approx(150.0)
+    assert ws.stale_required == [JOINT_STATE_COMPONENT, "front"]
+
+
+def test_age_equal_to_limit_is_fresh_and_one_ns_more_is_stale() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    agg.update_frame(_frame("front", T0))
+    clock.advance_ms(50)
+    assert not agg.snapshot().diagnostics["front"].stale
+    clock.now_ns += 1
+    assert agg.snapshot().diagnostics["front"].stale
+
+
+def test_a_stamp_far_in_the_future_is_stale_not_fresh_forever() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    agg.update_frame(_frame("front", T0 + 51 * MS))  # stamped on another clock
+    agg.update_frame(_frame("wrist", T0 + 1 * MS))  # within the limit: tolerated
+    ws = agg.snapshot()
+    assert ws.diagnostics["front"].stale
+    assert ws.diagnostics["front"].age_ms == pytest.approx(-51.0)
+    assert not ws.diagnostics["wrist"].stale
+
+
+def test_sample_goes_stale_as_the_clock_advances() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    agg.update_joint_state(_joints(T0))
+    assert not agg.snapshot().diagnostics[JOINT_STATE_COMPONENT].stale
+    clock.advance_ms(100.5)
+    assert agg.snapshot().diagnostics[JOINT_STATE_COMPONENT].stale
+
+
+def test_older_sample_does_not_replace_a_newer_one() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    newer = _frame("front", T0, seq=2)
+    agg.update_frame(newer)
+    agg.update_frame(_frame("front", T0 - 5 * MS, seq=1))
+    new_js = _joints(T0, 1.0)
+    agg.update_joint_state(new_js)
+    agg.update_joint_state(_joints(T0 - MS, 2.0))
+    ws = agg.snapshot()
+    assert ws.image_frames is not None
+    assert ws.image_frames["front"] is newer
+    assert ws.joint_state is new_js
+    same_stamp = _frame("front", T0, seq=3)
+    agg.update_frame(same_stamp)
+    assert agg.snapshot().image_frames == {"front": same_stamp}
+
+
+# --- frames ---------------------------------------------------------------------------------------
+
+
+def test_image_frames_are_the_same_objects_over_the_same_pixels() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    pixels = np.arange(2 * 2 * 3, dtype=np.uint8).reshape(2, 2, 3)
+    raw = bytearray(range(12))
+    front = _frame("front", T0, data=pixels)
+    wrist = _frame("wrist", T0, data=raw)
+    agg.update_frame(front)
+    agg.update_frame(wrist)
+    ws = agg.snapshot()
+    assert ws.image_frames is not None
+    assert ws.image_frames["front"] is front
+    assert ws.image_frames["wrist"] is wrist
+    assert np.shares_memory(ws.image_frames["front"].as_array(), pixels)
+    assert np.shares_memory(ws.image_frames["wrist"].as_array(), np.frombuffer(raw, np.uint8))
+    raw[0] = 200  # a write to the capture buffer is visible through the snapshot: no copy was made
+    assert ws.image_frames["wrist"].as_array()[0, 0, 0] == 200
+
+
+def test_image_frames_only_hold_sensors_that_delivered() -> None:
+    agg = _aggregator(FakeClock())
+    front = _frame("front", T0)
+    agg.update_frame(front)
+    ws = agg.snapshot()
+    assert ws.image_frames == {"front": front}
+    assert ws.diagnostics["wrist"].stale
+
+
+def test_stale_frames_are_still_delivered() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    front = _frame("front", T0)
+    agg.update_frame(front)
+    clock.advance_ms(500)
+    ws = agg.snapshot()
+    assert ws.diagnostics["front"].stale
+    assert ws.image_frames is not None
+    assert ws.image_frames["front"] is front
+
+
+def test_snapshot_does_not_alias_internal_state() -> None:
+    agg = _aggregator(FakeClock())
+    agg.update_frame(_frame("front", T0))
+    first = agg.snapshot()
+    agg.update_frame(_frame("wrist", T0))
+    assert first.image_frames is not None
+    assert set(first.image_frames) == {"front"}
+
+
+def test_unknown_sensor_frame_is_rejected_naming_the_declared_ones() -> None:
+    agg = _aggregator(FakeClock())
+    with pytest.raises(ROSConfigError, match="unknown sensor 'rear'; declared: front, wrist"):
+        agg.update_frame(_frame("rear", T0))
+
+
+# --- construction ---------------------------------------------------------------------------------
+
+
+def test_repeated_sensor_id_is_a_config_error() -> None:
+    with pytest.raises(ROSConfigError, match=r"sensors\[1\]\.sensor_id") as info:
+        WorldStateAggregator(sensors=_cams(("cam", 10.0, True), ("cam", 10.0, True)))
+    assert info.value.field == "sensors[1].sensor_id"
+
+
+def test_sensor_named_like_the_joint_state_is_a_config_error() -> None:
+    with pytest.raises(ROSConfigError, match="joint_state"):
+        WorldStateAggregator(sensors=_cams((JOINT_STATE_COMPONENT, 10.0, True)))
+
+
+@pytest.mark.parametrize("age", [0.0, -1.0, float("nan")])
+def test_joint_max_age_must_be_positive(age: float) -> None:
+    with pytest.raises(ROSConfigError, match="joint_max_age_ms"):
+        WorldStateAggregator(joint_max_age_ms=age)
+
+
+def test_joint_state_can_be_optional() -> None:
+    agg = WorldStateAggregator(joint_required=False, clock=FakeClock())
+    ws = agg.snapshot()
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].stale
+    assert ws.stale_required == []
+
+
+# --- errors ---------------------------------------------------------------------------------------
+
+
+def test_error_makes_a_fresh_component_unhealthy_until_cleared() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    agg.update_joint_state(_joints(T0))
+    agg.update_frame(_frame("front", T0))
+    agg.update_frame(_frame("wrist", T0))
+    agg.set_error(JOINT_STATE_COMPONENT, "read_state timed out")
+    agg.set_error("wrist", "USB unplugged")
+    ws = agg.snapshot()
+    diag = ws.diagnostics[JOINT_STATE_COMPONENT]
+    assert not diag.stale
+    assert diag.error == "read_state timed out"
+    assert not diag.healthy
+    assert ws.stale_components == [JOINT_STATE_COMPONENT, "wrist"]
+    assert ws.stale_required == [JOINT_STATE_COMPONENT]
+    agg.set_error(JOINT_STATE_COMPONENT, "still timing out")
+    assert agg.snapshot().diagnostics[JOINT_STATE_COMPONENT].error == "still timing out"
+    agg.clear_error(JOINT_STATE_COMPONENT)
+    agg.clear_error("front")  # none set: no-op
+    ws = agg.snapshot()
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].healthy
+    assert ws.stale_components == ["wrist"]
+
+
+def test_error_on_undeclared_component_is_rejected() -> None:
+    agg = _aggregator(FakeClock())
+    with pytest.raises(ROSConfigError, match="unknown component 'hal'"):
+        agg.set_error("hal", "boom")
+    with pytest.raises(ROSConfigError, match="unknown component 'hal'"):
+        agg.clear_error("hal")
+
+
+# --- telemetry ------------------------------------------------------------------------------------
+
+
+def test_each_snapshot_is_one_span(spans: InMemorySpanExporter) -> None:
+    agg = _aggregator(FakeClock())
+    agg.snapshot()
+    agg.snapshot()
+    names = [s.name for s in spans.get_finished_spans()]
+    assert names == [semconv.SPAN_WORLD_STATE_SNAPSHOT, semconv.SPAN_WORLD_STATE_SNAPSHOT]
+
+
+def test_staleness_latches_once_per_transition(spans: InMemorySpanExporter) -> None:
+    clock = FakeClock()
+    agg = WorldStateAggregator(sensors=_cams(("front", 50.0, True)), clock=clock)
+    agg.update_joint_state(_joints(T0))
+    agg.snapshot()
+    # The camera has not delivered yet: it latches once, the joint state does not.
+    assert _events(spans) == [
+        (semconv.EVENT_STALENESS_LATCHED, {semconv.ATTR_COMPONENT: "front"}),
+    ]
+    agg.snapshot()
+    agg.snapshot()
+    assert len(_events(spans)) == 1, "a component that stays stale must not emit again"
+
+    spans.clear()
+    agg.update_frame(_frame("front", clock.now_ns))
+    agg.snapshot()  # recovery: no event
+    clock.advance_ms(60)
+    agg.update_joint_state(_joints(clock.now_ns))
+    agg.snapshot()  # front is 60 ms old now
+    agg.snapshot()
+    assert _events(spans) == [
+        (semconv.EVENT_STALENESS_LATCHED, {semconv.ATTR_COMPONENT: "front", semconv.ATTR_SENSOR_AGE_MS: 60.0}),
+    ]
+
+    spans.clear()
+    agg.update_frame(_frame("front", clock.now_ns))
+    agg.snapshot()
+    clock.advance_ms(51)
+    agg.update_joint_state(_joints(clock.now_ns))
+    agg.snapshot()
+    assert [name for name, _ in _events(spans)] == [semconv.EVENT_STALENESS_LATCHED], "must latch again"
+
+
+def test_error_latches_once_until_cleared(spans: InMemorySpanExporter) -> None:
+    clock = FakeClock()
+    agg = WorldStateAggregator(clock=clock)
+    agg.update_joint_state(_joints(T0))
+    agg.set_error(JOINT_STATE_COMPONENT, "bus error")
+    agg.snapshot()
+    agg.set_error(JOINT_STATE_COMPONENT, "bus error again")
+    agg.snapshot()
+    agg.snapshot()
+    assert _events(spans) == [
+        (
+            semconv.EVENT_ERROR_LATCHED,
+            {semconv.ATTR_COMPONENT: JOINT_STATE_COMPONENT, "exception.message": "bus error"},
+        ),
+    ]
+    spans.clear()
+    agg.clear_error(JOINT_STATE_COMPONENT)
+    agg.snapshot()
+    assert _events(spans) == []
+    agg.set_error(JOINT_STATE_COMPONENT, "bus error, third time")
+    agg.snapshot()
+    assert [name for name, _ in _events(spans)] == [semconv.EVENT_ERROR_LATCHED]
+
+
+def test_components_stale_counter_goes_up_on_latch_and_down_on_recovery(
+    metric_reader: InMemoryMetricReader,
+) -> None:
+    clock = FakeClock()
+    agg = WorldStateAggregator(sensors=_cams(("latchcam", 50.0, True)), clock=clock)
+    before = _updown(metric_reader)
+    agg.snapshot()  # both components missing
+    agg.snapshot()
+    assert _delta(_updown(metric_reader), before) == {JOINT_STATE_COMPONENT: 1, "latchcam": 1}
+
+    agg.update_joint_state(_joints(clock.now_ns))
+    agg.update_frame(_frame("latchcam", clock.now_ns))
+    agg.snapshot()
+    assert _delta(_updown(metric_reader), before) == {}
+
+    agg.set_error("latchcam", "decoder failed")  # fresh but in error: unhealthy, counted once
+    agg.snapshot()
+    assert _delta(_updown(metric_reader), before) == {"latchcam": 1}
+    clock.advance_ms(60)  # now also stale: still one unhealthy component
+    agg.snapshot()
+    assert _delta(_updown(metric_reader), before) == {"latchcam": 1}
+    agg.clear_error("latchcam")
+    agg.update_frame(_frame("latchcam", clock.now_ns))
+    agg.update_joint_state(_joints(clock.now_ns))
+    agg.snapshot()
+    assert _delta(_updown(metric_reader), before) == {}
+
+
+def test_staleness_histogram_records_each_component_with_a_sample(metric_reader: InMemoryMetricReader) -> None:
+    clock = FakeClock()
+    agg = WorldStateAggregator(sensors=_cams(("histcam", 50.0, True), ("histcam2", 50.0, True)), clock=clock)
+    agg.update_frame(_frame("histcam", T0))
+    before = _hist_counts(metric_reader)
+    agg.snapshot()
+    agg.snapshot()
+    after = _hist_counts(metric_reader)
+    assert _delta(after, before) == {"histcam": 2}, "only components with a sample have an age to record"
+
+
+# --- threads --------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def frequent_thread_switches() -> Iterator[None]:
+    """Make the GIL change hands every few microseconds so races show up within a short test."""
+    previous = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(previous)
+
+
+@pytest.mark.usefixtures("frequent_thread_switches")
+def test_concurrent_updates_never_tear_a_snapshot() -> None:
+    ticks = 0
+    lock = threading.Lock()
+
+    def clock() -> int:
+        nonlocal ticks
+        with lock:
+            ticks += 1
+            return T0 + ticks * 1000
+
+    sensors = ("c0", "c1", "c2")
+    agg = WorldStateAggregator(
+        sensors=[SensorReaderConfig(sensor_id=s, max_age_ms=1e9) for s in sensors], joint_max_age_ms=1e9, clock=clock
+    )
+    n = 2_000
+    written_frames: dict[str, set[int]] = {s: set() for s in sensors}
+    written_joints: set[int] = set()
+    errors: list[BaseException] = []
+    start = threading.Barrier(len(sensors) + 2)
+
+    def capture(sensor_id: str) -> None:
+        try:
+            start.wait()
+            for seq in range(n):
+                frame = _frame(sensor_id, clock(), seq=seq)
+                written_frames[sensor_id].add(id(frame))
+                keep.append(frame)
+                agg.update_frame(frame)
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    def joints() -> None:
+        try:
+            start.wait()
+            for k in range(n):
+                js = _joints(clock(), float(k))
+                written_joints.add(id(js))
+                keep.append(js)
+                agg.update_joint_state(js)
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    keep: list[object] = []  # keeps every written object alive so ids stay unique
+    threads = [threading.Thread(target=capture, args=(s,)) for s in sensors] + [threading.Thread(target=joints)]
+    for thread in threads:
+        thread.start()
+    start.wait()
+    snapshots = []
+    while any(t.is_alive() for t in threads):
+        snapshots.append(agg.snapshot())
+    for thread in threads:
+        thread.join()
+    snapshots.append(agg.snapshot())
+
+    assert errors == []
+    assert len(snapshots) > 1
+    last_seq = dict.fromkeys(sensors, -1)
+    for ws in snapshots:
+        assert ws.image_frames is not None
+        if ws.joint_state is not None:
+            assert id(ws.joint_state) in written_joints
+            js_diag = ws.diagnostics[JOINT_STATE_COMPONENT]
+            assert js_diag.age_ms == (ws.stamp_ns - ws.joint_state.stamp_ns) / 1e6
+            assert js_diag.age_ms >= 0
+        for sensor_id in sensors:
+            frame = ws.image_frames.get(sensor_id)
+            diag = ws.diagnostics[sensor_id]
+            if frame is None:
+                assert diag.age_ms is None
+                continue
+            assert id(frame) in written_frames[sensor_id]
+            assert diag.age_ms == (ws.stamp_ns - frame.stamp_ns) / 1e6, "diagnostics and frame disagree"
+            assert diag.age_ms >= 0, "snapshot clock read before the frame it holds"
+            assert frame.seq >= last_seq[sensor_id], "a snapshot went back in time"
+            last_seq[sensor_id] = frame.seq
+    final = snapshots[-1]
+    assert final.image_frames is not None
+    assert {s: f.seq for s, f in final.image_frames.items()} == dict.fromkeys(sensors, n - 1)
