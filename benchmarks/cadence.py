@@ -76,7 +76,11 @@ def run_openral(rate_hz: float, seconds: float) -> Figures:
     timer = ComponentTimer()
     hal, skill, aggregator, safety = _components(timer)
     runner = HardwareRunner(
-        hal=hal, skill=skill, aggregator=aggregator, safety_client=safety, rate_hz=rate_hz  # type: ignore[arg-type]
+        hal=hal,
+        skill=skill,
+        aggregator=aggregator,
+        safety_client=safety,
+        rate_hz=rate_hz,  # type: ignore[arg-type]
     )
     runner.activate()
     try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from enum import StrEnum
 from typing import Self
 
@@ -80,10 +81,22 @@ class SafetyEnvelope(BaseModel):
 
     @model_validator(mode="after")
     def _box(self) -> Self:
-        if (self.workspace_min is None) != (self.workspace_max is None):
-            raise ValueError("workspace_min and workspace_max must be given together")
-        if self.workspace_min is not None and self.workspace_max is not None:
-            for axis, lo, hi in zip("xyz", self.workspace_min, self.workspace_max, strict=True):
-                if lo >= hi:
-                    raise ValueError(f"workspace_min.{axis} ({lo}) must be below workspace_max.{axis} ({hi})")
+        check_workspace_box(self.workspace_min, self.workspace_max)
         return self
+
+
+def check_workspace_box(lower: tuple[float, float, float] | None, upper: tuple[float, float, float] | None) -> None:
+    """Both corners or neither, finite, and ``lower < upper`` on every axis.
+
+    Raises:
+        ValueError: The box is malformed (pydantic reports it against the model).
+    """
+    if (lower is None) != (upper is None):
+        raise ValueError("workspace_min and workspace_max must be given together")
+    if lower is None or upper is None:
+        return
+    for axis, lo, hi in zip("xyz", lower, upper, strict=True):
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"workspace bounds on {axis} must be finite, got [{lo}, {hi}]")
+        if lo >= hi:
+            raise ValueError(f"workspace_min.{axis} ({lo}) must be below workspace_max.{axis} ({hi})")

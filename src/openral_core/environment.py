@@ -8,7 +8,7 @@ from typing import Any, Self
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from openral_core.actions import SafetyMode
+from openral_core.actions import SafetyMode, check_workspace_box
 from openral_core.config import load_model_yaml
 from openral_core.frames import FrameEncoding
 
@@ -35,6 +35,16 @@ class DeadlineOverrunPolicy(StrEnum):
     WARN = "warn"
     DROP = "drop"
     RAISE = "raise"
+
+
+def _allow_yaml_null(schema: dict[str, Any]) -> None:
+    """The schema of a plugin name also accepts YAML ``null`` (read as the plugin "null")."""
+    pattern = schema.pop("pattern", None)
+    kind = schema.pop("type", "string")
+    schema["anyOf"] = [{"type": kind, **({"pattern": pattern} if pattern else {})}, {"type": "null"}]
+
+
+_NULLABLE_NAME = _allow_yaml_null
 
 
 def _null_name(value: Any) -> Any:
@@ -84,7 +94,7 @@ class HalConfig(_Block):
     """
 
     robot_id: str = Field(pattern=_ID_PATTERN)
-    adapter: str = Field(default="mujoco_twin", pattern=_ID_PATTERN)
+    adapter: str = Field(default="mujoco_twin", pattern=_ID_PATTERN, json_schema_extra=_NULLABLE_NAME)
     params: dict[str, Any] = Field(default_factory=dict)
 
     @field_validator("adapter", mode="before")
@@ -122,7 +132,7 @@ class SafetyConfig(_Block):
     ``client: null`` disables checking (the runner warns at start).
     """
 
-    client: str = Field(default="envelope", pattern=_ID_PATTERN)
+    client: str = Field(default="envelope", pattern=_ID_PATTERN, json_schema_extra=_NULLABLE_NAME)
     mode: SafetyMode = SafetyMode.CLAMP
     max_joint_speed_factor: float = Field(default=1.0, gt=0, le=1.0)
     workspace_min: tuple[float, float, float] | None = None
@@ -132,6 +142,11 @@ class SafetyConfig(_Block):
     @classmethod
     def _yaml_null(cls, value: Any) -> Any:
         return _null_name(value)
+
+    @model_validator(mode="after")
+    def _box(self) -> Self:
+        check_workspace_box(self.workspace_min, self.workspace_max)
+        return self
 
 
 class RealtimeConfig(_Block):

@@ -6,7 +6,7 @@ Each error says what happened, why, and what to do. The CLI maps
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from openral_core.results import RunResult, TickResult
@@ -40,10 +40,14 @@ class ROSDependencyMissing(ROSConfigError):
     def __init__(self, module: str, *, extra: str, needed_for: str) -> None:
         self.module = module
         self.extra = extra
+        self.needed_for = needed_for
         super().__init__(
             f"{needed_for} needs the Python module '{module}', which is not installed",
             hint=f"install the extra: uv sync --extra {extra}  (or pip install 'openral[{extra}]')",
         )
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_rebuild, (type(self), (self.module,), {"extra": self.extra, "needed_for": self.needed_for}))
 
 
 class ROSLicenseError(ROSConfigError):
@@ -76,6 +80,10 @@ class ROSPerceptionStale(ROSRuntimeError):
         else:
             text = f"sensor '{sensor_id}' frame is {age_ms:.1f} ms old (limit {max_age_ms} ms)"
         super().__init__(text)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        kwargs = {"age_ms": self.age_ms, "max_age_ms": self.max_age_ms}
+        return (_rebuild, (type(self), (self.sensor_id,), kwargs))
 
 
 class ROSSafetyViolation(ROSError):
@@ -126,3 +134,8 @@ class ROSDeadlineMissed(ROSRuntimeError):
 
 class ROSStopRequested(ROSError):
     """A cooperative stop (signal or caller) ended the run before its tick limit."""
+
+
+def _rebuild(cls: type[ROSError], args: tuple[Any, ...], kwargs: dict[str, Any]) -> ROSError:
+    """Unpickle an error whose constructor takes keyword-only arguments."""
+    return cls(*args, **kwargs)

@@ -46,7 +46,7 @@ def _validate_buffer(value: Any) -> FrameBufferType | None:
             return base64.b64decode(value.encode("ascii"), validate=True)
         except (binascii.Error, ValueError) as exc:
             raise ValueError("frame data in JSON must be base64 text") from exc
-    raise TypeError(f"frame data must be bytes, memoryview, numpy array or base64 text, not {type(value)}")
+    raise ValueError(f"frame data must be bytes, memoryview, numpy array or base64 text, not {type(value).__name__}")
 
 
 def _serialize_buffer(value: FrameBufferType | None) -> str | None:
@@ -146,8 +146,12 @@ class SensorFrame(BaseModel):
             and data.dtype == dtype
             and data.shape[:2] == (self.height, self.width)
         ):
-            return data
-        raw = data.reshape(-1).view(np.uint8) if isinstance(data, np.ndarray) else np.frombuffer(data, np.uint8)
+            return data[:, :, 0] if self.channels == 1 and data.ndim == 3 else data
+        if isinstance(data, np.ndarray):
+            # A strided buffer cannot be reinterpreted byte-wise; this is the one case that copies.
+            raw = np.ascontiguousarray(data).reshape(-1).view(np.uint8)
+        else:
+            raw = np.frombuffer(data, np.uint8)
         item = self.channels * self.bytes_per_channel
         view = np.lib.stride_tricks.as_strided(
             raw,

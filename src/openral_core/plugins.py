@@ -56,6 +56,10 @@ class PluginRegistry(Mapping[str, Any]):
     def __len__(self) -> int:
         return len(self._entry_points)
 
+    def get(self, name: str, default: Any = None) -> Any:
+        """The plugin, or ``default`` when ``name`` is not registered."""
+        return self[name] if name in self._entry_points else default
+
     def __contains__(self, name: object) -> bool:
         return name in self._entry_points
 

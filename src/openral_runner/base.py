@@ -64,6 +64,21 @@ class InferenceRunnerBase(ABC):
         max_consecutive_failures: Faulted ticks in a row that end the run safely.
     """
 
+    _missed_slots: int
+    _deadline_misses: int
+    _budget_violations: int
+    _dropped: int
+    _withheld: int
+    _failed: int
+    _consecutive_failures: int
+    _stale_reads: int
+    _safety_violations: int
+    _trace_id: str | None
+    _run_t0: float
+    _run_t_end: float
+    _first_start_s: float
+    _last_start_s: float
+
     def __init__(
         self,
         *,
@@ -371,7 +386,7 @@ class InferenceRunnerBase(ABC):
         self._consecutive_failures = 0
         self._stale_reads = 0
         self._safety_violations = 0
-        self._trace_id: str | None = None
+        self._trace_id = None
         self._run_t0 = 0.0
         self._run_t_end = 0.0
         self._first_start_s = 0.0

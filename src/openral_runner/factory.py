@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import structlog
-from openral_rskill.manifest import RSkillManifest
 
 from openral_core import RobotEnvironment, RobotManifest, ROSConfigError
 from openral_core.plugins import (
@@ -24,6 +23,7 @@ from openral_core.plugins import (
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.protocol import HAL
 from openral_rskill.base import RSkillBase
+from openral_rskill.manifest import RSkillManifest
 from openral_runner.clock import Clock
 from openral_runner.hardware import HardwareRunner
 from openral_runner.safety import SafetyClient

@@ -78,6 +78,7 @@ class HardwareRunner(InferenceRunnerBase):
         self.task = task
         self.realtime = realtime
         self._opened: ExitStack | None = None
+        self._sensor_errors: set[str] = set()
         self._safety_observe = getattr(self.safety_client, "observe_state", None)
         self._safety_commit = getattr(self.safety_client, "commit", None)
         self._hal_attrs = {
@@ -240,11 +241,15 @@ class HardwareRunner(InferenceRunnerBase):
             self._on_stale(span, exc)
             return reader.sensor_id
         except ROSError as exc:
+            self._sensor_errors.add(reader.sensor_id)
             self.aggregator.set_error(reader.sensor_id, str(exc))
             _record_error(span, exc)
             return None
         else:
             self.aggregator.update_frame(frame)
+            if reader.sensor_id in self._sensor_errors:
+                self._sensor_errors.discard(reader.sensor_id)
+                self.aggregator.clear_error(reader.sensor_id)
             age_ms = frame.age_ms(self._clock.now_ns())
             metrics.record_histogram_ms(semconv.METRIC_SENSORS_AGE, age_ms, {semconv.ATTR_SENSOR_ID: reader.sensor_id})
             if span.is_recording():

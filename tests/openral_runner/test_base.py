@@ -122,7 +122,7 @@ def test_raise_policy_withholds_stops_and_carries_partial_result(clock: FakeCloc
 
 
 def test_on_time_ticks_are_not_late(clock: FakeClock) -> None:
-    runner = make(clock, {i: 0.99 * PERIOD for i in range(5)}, deadline_overrun_policy=DeadlineOverrunPolicy.RAISE)
+    runner = make(clock, dict.fromkeys(range(5), 0.99 * PERIOD), deadline_overrun_policy=DeadlineOverrunPolicy.RAISE)
     result = runner.run(5)
     assert result.deadline_misses == 0
     assert runner.sent == [0, 1, 2, 3, 4]
@@ -170,7 +170,7 @@ def test_consecutive_faults_stop_the_run(clock: FakeClock) -> None:
 
 def test_safety_withholds_do_not_count_as_faults(clock: FakeClock) -> None:
     runner = make(clock, max_consecutive_failures=2)
-    runner.withhold = {i: "safety" for i in range(6)}
+    runner.withhold = dict.fromkeys(range(6), "safety")
     result = runner.run(6)
     assert result.stop_reason == "max_ticks"
     assert result.withheld_actions == 6

@@ -293,3 +293,24 @@ def test_hal_send_failure_is_a_fault_not_a_crash() -> None:
     assert not runner.recent_ticks[0].action_applied
     assert result.failed_ticks == 1
     assert len(hal.sent) == 2
+
+
+def test_transient_reader_error_clears_on_the_next_good_frame() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("cam", clock)
+    failures = iter([ROSHardwareError("USB reset")])
+
+    def fail_once() -> None:
+        exc = next(failures, None)
+        if exc is not None:
+            raise exc
+
+    cam.on_read = fail_once
+    runner, hal, skill = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="cam")])
+    runner.activate()
+    result = runner.run(4)
+    reasons = [t.withheld_reason for t in runner.recent_ticks]
+    assert reasons == ["stale_sensor", None, None, None]
+    assert len(hal.sent) == 3
+    assert result.failed_ticks == 1
+    assert skill.seen[-1].diagnostics["cam"].healthy
