@@ -19,20 +19,31 @@ def machine_line() -> str:
 
 
 class ComponentTimer:
-    """Accumulates the time spent inside wrapped component calls (skill, HAL, safety, world state)."""
+    """Accumulates the time spent inside wrapped component calls (skill, HAL, safety, world state).
+
+    ``per_tick`` holds one total per tick; a wrapper made with ``starts_tick=True`` (the first
+    component each tick calls) opens a new entry.
+    """
 
     def __init__(self) -> None:
         self.total_s = 0.0
+        self.per_tick: list[float] = []
 
-    def wrap(self, fn: Callable[..., Any]) -> Callable[..., Any]:
-        """``fn`` with its own run time added to ``total_s``."""
+    def wrap(self, fn: Callable[..., Any], *, starts_tick: bool = False) -> Callable[..., Any]:
+        """``fn`` with its own run time added to ``total_s`` and to the current tick's entry."""
         perf = time.perf_counter
+        per_tick = self.per_tick
 
         def timed(*args: Any, **kwargs: Any) -> Any:
+            if starts_tick:
+                per_tick.append(0.0)
             start = perf()
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.total_s += perf() - start
+                elapsed = perf() - start
+                self.total_s += elapsed
+                if per_tick:
+                    per_tick[-1] += elapsed
 
         return timed

@@ -41,13 +41,15 @@ class Figures:
     jitter_max_us: float
     missed_slots: int
     overhead_us: float
+    overhead_p50_us: float
 
     def line(self) -> str:
         error_pct = (self.achieved_hz - self.rate_hz) / self.rate_hz * 100
         return (
             f"{self.loop:<9} {self.rate_hz:>6g} Hz  n={self.n_ticks:<6} achieved {self.achieved_hz:10.4f} Hz "
             f"({error_pct:+.4f}%)  jitter µs p50 {self.jitter_p50_us:8.1f} p99 {self.jitter_p99_us:8.1f} "
-            f"max {self.jitter_max_us:9.1f}  missed {self.missed_slots:>5}  overhead {self.overhead_us:6.2f} µs/tick"
+            f"max {self.jitter_max_us:9.1f}  missed {self.missed_slots:>5}  overhead µs/tick mean {self.overhead_us:6.2f} "
+            f"p50 {self.overhead_p50_us:6.2f}"
         )
 
 
@@ -61,7 +63,7 @@ class _TimedSafety:
 def _components(timer: ComponentTimer) -> tuple[NullHAL, HoldSkill, WorldStateAggregator, _TimedSafety]:
     robot = load_robot_manifest("so101_follower")
     hal = NullHAL(robot, {})
-    hal.read_state = timer.wrap(hal.read_state)  # type: ignore[method-assign]
+    hal.read_state = timer.wrap(hal.read_state, starts_tick=True)  # type: ignore[method-assign]
     hal.send_action = timer.wrap(hal.send_action)  # type: ignore[method-assign]
     skill = HoldSkill(robot)
     skill.configure()
@@ -89,6 +91,8 @@ def run_openral(rate_hz: float, seconds: float) -> Figures:
     finally:
         runner.deactivate()
     tick_total_s = result.tick_ms_mean * 1e-3 * result.n_ticks
+    recent = list(runner.recent_ticks)
+    per_tick = np.array([t.tick_ms * 1e-3 for t in recent]) - np.array(timer.per_tick[-len(recent) :])
     return Figures(
         loop="openral",
         rate_hz=rate_hz,
@@ -99,6 +103,7 @@ def run_openral(rate_hz: float, seconds: float) -> Figures:
         jitter_max_us=result.start_jitter_us_max,
         missed_slots=result.missed_slots,
         overhead_us=(tick_total_s - timer.total_s) / result.n_ticks * 1e6,
+        overhead_p50_us=float(np.median(per_tick)) * 1e6,
     )
 
 
@@ -112,6 +117,7 @@ def run_lerobot_style(rate_hz: float, seconds: float) -> Figures:
     starts = np.empty(n)
     intended = np.empty(n)
     busy_s = 0.0
+    busy = np.empty(n)
     perf = time.perf_counter
     next_intended = perf()
     for i in range(n):
@@ -124,6 +130,7 @@ def run_lerobot_style(rate_hz: float, seconds: float) -> Figures:
         hal.send_action(checked or action)
         elapsed = perf() - start
         busy_s += elapsed
+        busy[i] = elapsed
         next_intended = start + period
         if period - elapsed > 0:
             time.sleep(period - elapsed)
@@ -140,6 +147,7 @@ def run_lerobot_style(rate_hz: float, seconds: float) -> Figures:
         jitter_max_us=float(jitter_us.max()),
         missed_slots=0,
         overhead_us=(busy_s - timer.total_s) / n * 1e6,
+        overhead_p50_us=float(np.median(busy - np.array(timer.per_tick))) * 1e6,
     )
 
 

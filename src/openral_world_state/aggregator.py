@@ -163,29 +163,35 @@ class WorldStateAggregator:
         ``stamp_ns`` is ``clock()`` read after the samples were taken, so ages are never
         negative for samples stamped on the same clock.
         """
-        with self._snapshot_lock, self._tracer.start_as_current_span(semconv.SPAN_WORLD_STATE_SNAPSHOT) as span:
-            with self._lock:
-                joint_state = self._joint_state
-                frames = dict(self._frames)
-                errors = dict(self._errors) if self._errors else None
-                now_ns = self._clock()
-            diagnostics: dict[str, ComponentDiagnostics] = {}
-            for component in self._components:
-                if component.name == JOINT_STATE_COMPONENT:
-                    stamp_ns = None if joint_state is None else joint_state.stamp_ns
-                else:
-                    frame = frames.get(component.name)
-                    stamp_ns = None if frame is None else frame.stamp_ns
-                diagnostics[component.name] = self._diagnose(component, stamp_ns, now_ns, errors, span)
-            # Plain (validated) construction: pydantic-core checks these flat fields faster than
-            # ``model_construct`` builds them, and nested model instances pass through unvalidated and uncopied.
-            return WorldState(
-                stamp_ns=now_ns,
-                joint_state=joint_state,
-                image_frames=frames if self._has_sensors else None,
-                diagnostics=diagnostics,
-                task=task,
-            )
+        # The span is started without becoming current: nothing nests under it, and this is
+        # several times cheaper than ``start_as_current_span`` on the tick path.
+        with self._snapshot_lock:
+            span = self._tracer.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+            try:
+                with self._lock:
+                    joint_state = self._joint_state
+                    frames = dict(self._frames)
+                    errors = dict(self._errors) if self._errors else None
+                    now_ns = self._clock()
+                diagnostics: dict[str, ComponentDiagnostics] = {}
+                for component in self._components:
+                    if component.name == JOINT_STATE_COMPONENT:
+                        stamp_ns = None if joint_state is None else joint_state.stamp_ns
+                    else:
+                        frame = frames.get(component.name)
+                        stamp_ns = None if frame is None else frame.stamp_ns
+                    diagnostics[component.name] = self._diagnose(component, stamp_ns, now_ns, errors, span)
+                # Plain (validated) construction: pydantic-core checks these flat fields faster than
+                # ``model_construct`` builds them, and nested model instances pass through unvalidated and uncopied.
+                return WorldState(
+                    stamp_ns=now_ns,
+                    joint_state=joint_state,
+                    image_frames=frames if self._has_sensors else None,
+                    diagnostics=diagnostics,
+                    task=task,
+                )
+            finally:
+                span.end()
 
     def _diagnose(
         self,
