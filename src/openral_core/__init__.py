@@ -26,6 +26,7 @@ from openral_core.errors import (
     ROSSafetyViolation,
     ROSSkillError,
     ROSStopRequested,
+    ROSSyncError,
 )
 from openral_core.frames import FrameEncoding, SensorFrame
 from openral_core.results import RunResult, TickResult
@@ -58,6 +59,7 @@ __all__ = [
     "ROSSafetyViolation",
     "ROSSkillError",
     "ROSStopRequested",
+    "ROSSyncError",
     "RSkillInfo",
     "RSkillState",
     "RealtimeConfig",

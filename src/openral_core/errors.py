@@ -86,6 +86,24 @@ class ROSPerceptionStale(ROSRuntimeError):
         return (_rebuild, (type(self), (self.sensor_id,), kwargs))
 
 
+class ROSSyncError(ROSRuntimeError):
+    """A multi-camera set could not be made with capture stamps within the allowed skew in time.
+
+    Args:
+        message: Which sensors lagged and by how much.
+        skew_ms: The spread of capture stamps in the best set found.
+        lagging: Sensor ids whose frames were too old relative to the newest.
+    """
+
+    def __init__(self, message: str, *, skew_ms: float, lagging: tuple[str, ...]) -> None:
+        self.skew_ms = skew_ms
+        self.lagging = lagging
+        super().__init__(message)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_rebuild, (type(self), (str(self),), {"skew_ms": self.skew_ms, "lagging": self.lagging}))
+
+
 class ROSSafetyViolation(ROSError):
     """The safety client rejected an action; the runner withholds it.
 

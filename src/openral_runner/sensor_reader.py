@@ -1,22 +1,25 @@
-"""The ``SensorReader`` Protocol: the seam between capture backends and the runner."""
+"""The ``SensorReader`` Protocol and multi-camera synchronisation over it."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable, Sequence
 from typing import Protocol, runtime_checkable
 
-from openral_core import SensorFrame
+from openral_core import ROSPerceptionStale, ROSSyncError, SensorFrame
 
 
 @runtime_checkable
 class SensorReader(Protocol):
     """One sensor's capture, running in the background and serving its latest frame.
 
-    Backends live in ``openral_runner.backends`` and register in ``openral.sensor_backends``.
+    Backends live in ``openral_runner.backends`` and register in ``openral.sensor_backends``
+    (constructed with ``Cls.from_config(config, hal=..., robot=...)``).
 
     ``read_latest`` never blocks on the device: it returns the freshest buffered frame, or
     raises ``ROSPerceptionStale`` when there is none yet or it is older than ``max_age_ms``
     (the backend's configured limit when ``None``), and ``ROSRuntimeError`` when the reader
-    is closed or its device failed.
+    is closed or its device failed. Frame ages are measured from the capture stamp.
     """
 
     sensor_id: str
@@ -33,3 +36,54 @@ class SensorReader(Protocol):
 
     def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
         """The most recent frame, without waiting for a new one."""
+
+    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
+        """Wait until a frame captured after ``newer_than_ns`` is available, at most until ``deadline_ns``.
+
+        Both are on the monotonic clock of the capture stamps.
+
+        Raises:
+            ROSPerceptionStale: No such frame by the deadline.
+            ROSRuntimeError: The reader is closed or failed.
+        """
+
+
+def read_synced_set(
+    readers: Sequence[SensorReader],
+    *,
+    max_skew_ms: float,
+    deadline_ns: int,
+    max_age_ms: float | None = None,
+    clock_ns: Callable[[], int] = time.monotonic_ns,
+) -> dict[str, SensorFrame]:
+    """One frame per reader whose capture stamps all lie within ``max_skew_ms`` of each other.
+
+    Starts from each reader's latest frame; while some frames are older than the newest by
+    more than the skew, waits (until ``deadline_ns``) for those readers' next frames.
+
+    Raises:
+        ROSPerceptionStale: A reader has no fresh frame at all.
+        ROSSyncError: No set within the skew could be made by the deadline; says which
+            sensors lagged and the skew of the best set.
+    """
+    frames = {reader.sensor_id: reader.read_latest(max_age_ms) for reader in readers}
+    by_id = {reader.sensor_id: reader for reader in readers}
+    skew_ns = max_skew_ms * 1e6
+    while True:
+        newest = max(frame.stamp_ns for frame in frames.values())
+        lagging = [sid for sid, frame in frames.items() if newest - frame.stamp_ns > skew_ns]
+        if not lagging:
+            return frames
+        for sensor_id in lagging:
+            if clock_ns() >= deadline_ns:
+                spread = (newest - min(f.stamp_ns for f in frames.values())) / 1e6
+                raise ROSSyncError(
+                    f"no frame set within {max_skew_ms} ms by the deadline: {', '.join(sorted(lagging))} "
+                    f"lag the newest frame (spread {spread:.1f} ms)",
+                    skew_ms=spread,
+                    lagging=tuple(sorted(lagging)),
+                )
+            try:
+                frames[sensor_id] = by_id[sensor_id].read_synced(deadline_ns, newer_than_ns=frames[sensor_id].stamp_ns)
+            except ROSPerceptionStale:  # the reader's own deadline passed: reported as a sync failure above
+                continue

@@ -46,6 +46,7 @@ class ScriptedReader:
         age_ms: Age of each served frame; set it high to make the reader stale.
         max_age_ms: Default staleness limit.
         fail_open: Raised by ``open()`` when set.
+        frame_period_ns: Capture period used by ``read_synced``.
     """
 
     def __init__(
@@ -58,6 +59,7 @@ class ScriptedReader:
         age_ms: float = 1.0,
         max_age_ms: float = 100.0,
         fail_open: Exception | None = None,
+        frame_period_ns: int = 33_333_333,
     ) -> None:
         self.sensor_id = sensor_id
         self.clock = clock
@@ -66,6 +68,7 @@ class ScriptedReader:
         self.age_ms = age_ms
         self.max_age_ms = max_age_ms
         self.fail_open = fail_open
+        self.frame_period_ns = frame_period_ns
         self.open_calls = 0
         self.close_calls = 0
         self.on_read: Callable[[], None] | None = None
@@ -90,6 +93,19 @@ class ScriptedReader:
         if self._open:
             self.close_calls += 1
         self._open = False
+
+    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
+        """Jump the fake clock to the next frame if it is due before ``deadline_ns``.
+
+        Frames are captured every ``frame_period_ns`` from time 0 on the fake clock.
+        """
+        period = self.frame_period_ns
+        next_stamp = (max(newer_than_ns, self.clock.now_ns() - round(self.age_ms * 1e6)) // period + 1) * period
+        if next_stamp > deadline_ns:
+            self.clock.sleep_until(deadline_ns / 1e9)
+            raise ROSPerceptionStale(self.sensor_id, age_ms=None, max_age_ms=self.max_age_ms)
+        self.clock.sleep_until(next_stamp / 1e9 + self.age_ms / 1e3)
+        return self.read_latest()
 
     def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
         """A frame ``age_ms`` old, or ``ROSPerceptionStale`` if that exceeds the limit."""

@@ -216,9 +216,10 @@ def test_joints_an_action_does_not_name_keep_their_targets(twin: MujocoTwinHAL) 
 @pytest.mark.slow
 def test_tracks_a_moving_sinusoid(twin: MujocoTwinHAL) -> None:
     # 0.3 rad, 0.5 Hz on three joints, commanded at 30 Hz for 2.5 s. After 0.5 s of settling the
-    # measured worst error is 0.078 rad (elbow_flex: servo lag plus gravity sag) and 0.054 rad on
-    # the unloaded pan joint, i.e. ~55 ms of servo lag; allow 0.12. A twin that did not move would
-    # be 0.3 rad off.
+    # measured error is 0.070 rad at the 95th percentile and 0.078 rad at worst (elbow_flex: servo
+    # lag plus gravity sag; 0.054 rad on the unloaded pan joint, i.e. ~55 ms of servo lag). Allow
+    # 0.10 at p95 and 0.15 at worst, so one late loop iteration on a loaded machine is no failure.
+    # A twin that did not move would be 0.3 rad off.
     amplitude, freq, rate = 0.3, 0.5, 30.0
     moving = ["shoulder_pan", "elbow_flex", "wrist_roll"]
     errors: list[float] = []
@@ -233,16 +234,20 @@ def test_tracks_a_moving_sinusoid(twin: MujocoTwinHAL) -> None:
         k += 1
         time.sleep(max(0.0, t0 + k / rate - time.monotonic()))
     assert len(errors) > 3 * 40
-    assert max(errors) < 0.12
+    assert float(np.percentile(errors, 95)) < 0.10
+    assert max(errors) < 0.15
 
 
 def test_estop_holds_the_arm_where_it_is(twin: MujocoTwinHAL) -> None:
     twin.send_action(Action(joint_names=["shoulder_pan", "elbow_flex"], targets=[[1.5, 1.2]]))
-    time.sleep(0.15)  # mid-motion: pan at ~0.5 rad moving at ~5 rad/s (measured)
-    at_stop = twin.read_state()
-    assert at_stop.velocities is not None
-    assert abs(at_stop.velocities[0]) > 1.0
+    _wait_until(lambda: twin.read_state().position_of("shoulder_pan") > 0.4, 1.0)
+    moving = twin.read_state()  # mid-motion: ~0.45 rad, ~5 rad/s (measured)
     twin.estop()
+    with twin.locked_scene() as (model, data):
+        held = float(data.ctrl[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, "shoulder_pan")])
+    assert moving.velocities is not None
+    assert moving.velocities[0] > 1.0
+    assert moving.position_of("shoulder_pan") <= held < 1.2
 
     samples = []
     t0 = time.monotonic()
@@ -250,10 +255,10 @@ def test_estop_holds_the_arm_where_it_is(twin: MujocoTwinHAL) -> None:
         samples.append(twin.read_state().positions)
         time.sleep(0.01)
     trace = np.array(samples)
-    # The arm overshoots the stop point by 0.16 rad at most (measured) while the servo brakes,
-    # stays far from the old 1.5 rad target, and is still within 0.6 s.
-    assert np.abs(trace[:, 0] - at_stop.positions[0]).max() < 0.3
-    assert trace[:, 0].max() < 1.0
+    # The arm overshoots the hold point by 0.16 rad at most (measured) while the servo brakes,
+    # never nears the old 1.5 rad target, and is still (0.000 rad of motion) within 0.6 s.
+    assert np.abs(trace[:, 0] - held).max() < 0.3
+    assert trace[:, 0].max() < held + 0.3 < 1.5
     tail = trace[-20:]
     assert np.ptp(tail, axis=0).max() < 0.005
 

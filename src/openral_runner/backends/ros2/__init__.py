@@ -1,0 +1,1 @@
+"""ROS 2 image subscription backend. ``convert`` is pure Python; ``reader`` needs ``rclpy``."""
