@@ -48,7 +48,8 @@ class Figures:
         return (
             f"{self.loop:<9} {self.rate_hz:>6g} Hz  n={self.n_ticks:<6} achieved {self.achieved_hz:10.4f} Hz "
             f"({error_pct:+.4f}%)  jitter µs p50 {self.jitter_p50_us:8.1f} p99 {self.jitter_p99_us:8.1f} "
-            f"max {self.jitter_max_us:9.1f}  missed {self.missed_slots:>5}  overhead µs/tick mean {self.overhead_us:6.2f} "
+            f"max {self.jitter_max_us:9.1f}  missed {self.missed_slots:>5}  "
+            f"overhead µs/tick mean {self.overhead_us:6.2f} "
             f"p50 {self.overhead_p50_us:6.2f}"
         )
 

@@ -10,6 +10,7 @@ from openral_core.environment import (
     SafetyConfig,
     SensorReaderBackend,
     SensorReaderConfig,
+    SyncConfig,
     TaskSpec,
     VLASpec,
 )
@@ -72,6 +73,7 @@ __all__ = [
     "SensorFrame",
     "SensorReaderBackend",
     "SensorReaderConfig",
+    "SyncConfig",
     "TaskSpec",
     "TickResult",
     "VLASpec",

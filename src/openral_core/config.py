@@ -35,21 +35,30 @@ def load_model_yaml(model: type[ModelT], path: Path) -> ModelT:
     return validate_model(model, data, source=str(path))
 
 
-def validate_model(model: type[ModelT], data: Any, *, source: str | None = None) -> ModelT:
-    """Validate ``data`` as ``model``, raising ``ROSConfigError`` that names the first bad field."""
+def validate_model(
+    model: type[ModelT], data: Any, *, source: str | None = None, field_prefix: str | None = None
+) -> ModelT:
+    """Validate ``data`` as ``model``, raising ``ROSConfigError`` that names the first bad field.
+
+    Args:
+        source: Where the data came from (a file, a plugin), appended to the message.
+        field_prefix: Dotted path of ``data`` in the deployment (``hal.params``), prepended to field names.
+    """
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise config_error_from_validation(exc, model, source=source) from exc
+        raise config_error_from_validation(exc, model, source=source, field_prefix=field_prefix) from exc
 
 
 def config_error_from_validation(
-    exc: ValidationError, model: type[BaseModel], *, source: str | None = None
+    exc: ValidationError, model: type[BaseModel], *, source: str | None = None, field_prefix: str | None = None
 ) -> ROSConfigError:
     """Describe a pydantic ``ValidationError`` as a single ``ROSConfigError``."""
     errors = exc.errors(include_url=False)
     first = errors[0]
     field = _dotted(first["loc"])
+    if field_prefix:
+        field = f"{field_prefix}.{field}" if field else field_prefix
     message, hint = _describe(first, model)
     if len(errors) > 1:
         others = ", ".join(_dotted(e["loc"]) or "<root>" for e in errors[1:4])

@@ -85,6 +85,20 @@ class SensorReaderConfig(_Block):
         return self
 
 
+class SyncConfig(_Block):
+    """Cameras whose frames must be captured together each tick.
+
+    Attributes:
+        sensors: Sensor ids read as one set (at least two).
+        max_skew_ms: Largest spread of capture stamps within the set.
+        timeout_ms: How long a tick may wait for lagging cameras before the set counts as failed.
+    """
+
+    sensors: list[str] = Field(min_length=2)
+    max_skew_ms: float = Field(default=10.0, gt=0)
+    timeout_ms: float = Field(default=15.0, gt=0)
+
+
 class HalConfig(_Block):
     """Which robot and which adapter drives it.
 
@@ -184,6 +198,7 @@ class RobotEnvironment(_Block):
     vla: VLASpec
     task: TaskSpec = Field(default_factory=TaskSpec)
     sensors: list[SensorReaderConfig] = Field(default_factory=list)
+    sync: SyncConfig | None = None
     rate_hz: float = Field(default=30.0, gt=0, le=10_000)
     deadline_overrun_policy: DeadlineOverrunPolicy = DeadlineOverrunPolicy.WARN
     latency_budget_ms: float | None = Field(default=None, gt=0)
@@ -201,6 +216,14 @@ class RobotEnvironment(_Block):
                     f"sensors[{index}].sensor_id '{sensor.sensor_id}' is used twice: give each sensor its own id"
                 )
             seen.add(sensor.sensor_id)
+        if self.sync is not None:
+            for index, sensor_id in enumerate(self.sync.sensors):
+                if sensor_id not in seen:
+                    raise ValueError(
+                        f"sync.sensors[{index}] '{sensor_id}' is not a declared sensor; declared: {sorted(seen)}"
+                    )
+            if len(set(self.sync.sensors)) != len(self.sync.sensors):
+                raise ValueError("sync.sensors lists a sensor twice")
         return self
 
     @property

@@ -9,7 +9,11 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class JointKind(StrEnum):
-    """A revolute joint in radians, or a gripper whose command is normalised to 0 (closed)..1 (open)."""
+    """A revolute joint in radians, or a gripper.
+
+    Gripper limits are in the robot model's own units (the SO-101 jaw: radians); an adapter
+    for real hardware may expose a normalised opening, but limits here match the model.
+    """
 
     REVOLUTE = "revolute"
     GRIPPER = "gripper"

@@ -102,7 +102,7 @@ def initial_positions(manifest: RobotManifest, given: Mapping[str, float]) -> li
     names = manifest.joint_names
     for name in given:
         if name not in names:
-            raise unknown_joint(manifest.robot_id, names, name, field=f"initial_positions.{name}")
+            raise unknown_joint(manifest.robot_id, names, name, field=f"hal.params.initial_positions.{name}")
     out: list[float] = []
     for spec in manifest.joints:
         if spec.name in given:
@@ -110,7 +110,7 @@ def initial_positions(manifest: RobotManifest, given: Mapping[str, float]) -> li
             if not spec.lower <= value <= spec.upper:
                 raise ROSConfigError(
                     f"{value} is outside joint '{spec.name}' limits [{spec.lower}, {spec.upper}]",
-                    field=f"initial_positions.{spec.name}",
+                    field=f"hal.params.initial_positions.{spec.name}",
                 )
             out.append(value)
         else:

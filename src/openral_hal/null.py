@@ -48,7 +48,9 @@ class NullHAL:
     adapter = "null"
 
     def __init__(self, manifest: RobotManifest, params: Mapping[str, Any] | None = None) -> None:
-        self.params = validate_model(NullHALParams, dict(params or {}), source="hal.params (null HAL)")
+        self.params = validate_model(
+            NullHALParams, dict(params or {}), source="the null HAL", field_prefix="hal.params"
+        )
         self.manifest = manifest
         self.robot_id = manifest.robot_id
         self.joint_names = manifest.joint_names

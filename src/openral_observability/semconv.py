@@ -22,6 +22,8 @@ SPAN_SKILL_EXECUTE: Final = "rskill.execute"
 SPAN_SAFETY_CHECK: Final = "safety.check"
 SPAN_HAL_SEND_ACTION: Final = "hal.send_action"
 SPAN_HAL_ESTOP: Final = "hal.estop"
+SPAN_SENSORS_THUMBNAIL: Final = "sensors.thumbnail"
+SPAN_SENSORS_READ_SYNCED: Final = "sensors.read_synced"
 
 # Tick attributes
 ATTR_TICK_IDX: Final = "openral.tick.idx"
@@ -45,6 +47,10 @@ ATTR_TRUNCATED: Final = "skill.truncated"
 # Other attributes
 ATTR_SENSOR_ID: Final = "openral.sensor.id"
 ATTR_SENSOR_AGE_MS: Final = "openral.sensors.age_ms"
+ATTR_SYNC_SKEW_MS: Final = "openral.sensors.sync_skew_ms"
+ATTR_THUMBNAIL_WIDTH: Final = "openral.thumbnail.width"
+ATTR_THUMBNAIL_HEIGHT: Final = "openral.thumbnail.height"
+ATTR_THUMBNAIL_JPEG_B64: Final = "openral.thumbnail.jpeg_b64"
 ATTR_HAL_ADAPTER: Final = "openral.hal.adapter"
 ATTR_HAL_ROBOT_MODEL: Final = "openral.hal.robot.model"
 ATTR_HAL_CONTROL_MODE: Final = "openral.hal.control_mode"
@@ -66,6 +72,7 @@ EVENT_SAFETY_VIOLATION: Final = "openral.event.safety_violation"
 EVENT_ACTION_DROPPED: Final = "openral.event.action_dropped"
 EVENT_ESTOP_REQUESTED: Final = "openral.event.estop_requested"
 EVENT_TICK_FAILED: Final = "openral.event.tick_failed"
+EVENT_SENSOR_SYNC_FAILED: Final = "openral.event.sensor_sync_failed"
 
 # Metrics
 METRIC_TICK_DURATION: Final = "openral.tick.duration"

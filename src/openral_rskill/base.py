@@ -67,7 +67,7 @@ def validate_params(model: type[ParamsT], params: Mapping[str, Any], *, skill_id
     Raises:
         ROSConfigError: Naming the bad field (and, for an unknown key, the allowed keys).
     """
-    return validate_model(model, dict(params), source=f"vla.params of skill '{skill_id}'")
+    return validate_model(model, dict(params), source=f"skill '{skill_id}'", field_prefix="vla.params")
 
 
 class RSkillBase(ABC):

@@ -98,7 +98,7 @@ class HelloSkill(RSkillBase):
         if self.params.frequency_hz >= self.rate_hz / 2:
             raise ROSConfigError(
                 f"{self.params.frequency_hz} Hz cannot be sampled at {self.rate_hz} Hz",
-                field="frequency_hz",
+                field="vla.params.frequency_hz",
                 hint=f"use a frequency below {self.rate_hz / 2} Hz",
             )
         self._names = robot.joint_names
@@ -194,15 +194,15 @@ def _moving_joints(robot: RobotManifest, params: HelloParams) -> list[str]:
     if unknown:
         raise ROSConfigError(
             f"unknown joints {unknown} for robot '{robot.robot_id}'; its joints are {', '.join(known)}",
-            field="joints",
+            field="vla.params.joints",
         )
     if len(set(params.joints)) != len(params.joints):
-        raise ROSConfigError(f"repeats a joint: {params.joints}", field="joints")
+        raise ROSConfigError(f"repeats a joint: {params.joints}", field="vla.params.joints")
     held_grippers = [n for n in params.joints if n in grippers and params.gripper == "hold"]
     if held_grippers:
         raise ROSConfigError(
             f"{held_grippers} are grippers, which hold while 'gripper' is 'hold'",
-            field="joints",
+            field="vla.params.joints",
             hint="remove them from joints, or set gripper: wave",
         )
     return list(params.joints)

@@ -28,6 +28,7 @@ from openral_runner.clock import Clock
 from openral_runner.hardware import HardwareRunner
 from openral_runner.safety import SafetyClient
 from openral_runner.sensor_reader import SensorReader
+from openral_runner.thumbnails import ThumbnailPublisher
 from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
@@ -108,6 +109,8 @@ def build_runner(
         max_consecutive_failures=env.faults.max_consecutive_failures,
         runner_name=env.name,
         realtime=env.realtime,
+        sync=env.sync,
+        thumbnails=ThumbnailPublisher(env.thumbnail_hz) if env.sensors and env.thumbnail_hz > 0 else None,
     )
     return runner, skill
 

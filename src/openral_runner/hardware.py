@@ -24,6 +24,9 @@ from openral_core import (
     ROSEStopRequested,
     ROSPerceptionStale,
     ROSSafetyViolation,
+    ROSSyncError,
+    SensorFrame,
+    SyncConfig,
     TickResult,
 )
 from openral_hal.protocol import HAL
@@ -32,7 +35,8 @@ from openral_rskill.base import RSkillBase
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import NullSafetyClient, SafetyClient
-from openral_runner.sensor_reader import SensorReader
+from openral_runner.sensor_reader import SensorReader, read_synced_set
+from openral_runner.thumbnails import ThumbnailPublisher
 from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
@@ -52,6 +56,8 @@ class HardwareRunner(InferenceRunnerBase):
         safety_client: Checks every action; defaults to ``NullSafetyClient``.
         task: Instruction placed in every world state.
         realtime: Real-time knobs applied to the calling thread at activation.
+        sync: Cameras read as one set with bounded capture skew each tick.
+        thumbnails: Receives each tick's frames for throttled dashboard thumbnails.
         **base_kwargs: ``InferenceRunnerBase`` options (rate, policy, clock, ...).
     """
 
@@ -65,6 +71,8 @@ class HardwareRunner(InferenceRunnerBase):
         safety_client: SafetyClient | None = None,
         task: str | None = None,
         realtime: RealtimeConfig | None = None,
+        sync: SyncConfig | None = None,
+        thumbnails: ThumbnailPublisher | None = None,
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("runner_name", "hardware_runner")
@@ -77,6 +85,12 @@ class HardwareRunner(InferenceRunnerBase):
         self.safety_client: SafetyClient = safety_client or NullSafetyClient()
         self.task = task
         self.realtime = realtime
+        self.sync = sync
+        self.thumbnails = thumbnails
+        synced = set(sync.sensors) if sync is not None else set()
+        self._synced_readers = [r for r in self.sensor_readers if r.sensor_id in synced]
+        self._free_readers = [r for r in self.sensor_readers if r.sensor_id not in synced]
+        self._sync_required = any(aggregator.is_required(sensor_id) for sensor_id in synced)
         self._opened: ExitStack | None = None
         self._sensor_errors: set[str] = set()
         self._safety_observe = getattr(self.safety_client, "observe_state", None)
@@ -105,6 +119,9 @@ class HardwareRunner(InferenceRunnerBase):
             for reader in self.sensor_readers:
                 reader.open()
                 stack.callback(self._safe_close, f"sensor {reader.sensor_id}", reader.close)
+            if self.thumbnails is not None:
+                self.thumbnails.start()
+                stack.callback(self._safe_close, "thumbnails", self.thumbnails.stop)
             super().activate()
             self._opened = stack.pop_all()
 
@@ -135,10 +152,14 @@ class HardwareRunner(InferenceRunnerBase):
         violations: list[str] = []
 
         t0 = now()
-        for reader in self.sensor_readers:
+        for reader in self._free_readers:
             stale_id = self._read_sensor(reader)
             if stale_id is not None:
                 stale.append(stale_id)
+        if self._synced_readers and not self._read_synced_set():
+            stale.extend(r.sensor_id for r in self._synced_readers)
+            if self._sync_required:
+                withheld = "stale_sensor"
         span = tr.start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
         try:
             state = self.hal.read_state()
@@ -232,6 +253,45 @@ class HardwareRunner(InferenceRunnerBase):
             sent_action=to_send.first if applied and to_send is not None else None,
         )
 
+    def _read_synced_set(self) -> bool:
+        """Read the synchronised cameras as one set; ``False`` if no set within the skew was made."""
+        assert self.sync is not None
+        span = self._tracer.start_span(semconv.SPAN_SENSORS_READ_SYNCED)
+        try:
+            remaining_s = max(0.0, self._deadline_s - self._clock.now())
+            timeout_s = min(self.sync.timeout_ms / 1e3, remaining_s)
+            frames = read_synced_set(
+                self._synced_readers,
+                max_skew_ms=self.sync.max_skew_ms,
+                deadline_ns=self._clock.now_ns() + int(timeout_s * 1e9),
+                clock_ns=self._clock.now_ns,
+            )
+        except ROSError as exc:
+            attrs: dict[str, Any] = {"reason": str(exc)}
+            if isinstance(exc, ROSSyncError):
+                attrs[semconv.ATTR_SYNC_SKEW_MS] = exc.skew_ms
+            span.add_event(semconv.EVENT_SENSOR_SYNC_FAILED, attrs)
+            for reader in self._synced_readers:
+                metrics.add(semconv.METRIC_SENSORS_STALE_READS, 1, {semconv.ATTR_SENSOR_ID: reader.sensor_id})
+            return False
+        else:
+            stamps = [frame.stamp_ns for frame in frames.values()]
+            if span.is_recording():
+                span.set_attribute(semconv.ATTR_SYNC_SKEW_MS, (max(stamps) - min(stamps)) / 1e6)
+            for frame in frames.values():
+                self._accept_frame(frame)
+            return True
+        finally:
+            span.end()
+
+    def _accept_frame(self, frame: SensorFrame) -> None:
+        self.aggregator.update_frame(frame)
+        if frame.sensor_id in self._sensor_errors:
+            self._sensor_errors.discard(frame.sensor_id)
+            self.aggregator.clear_error(frame.sensor_id)
+        if self.thumbnails is not None:
+            self.thumbnails.offer(frame)
+
     def _read_sensor(self, reader: SensorReader) -> str | None:
         """Move one reader's latest frame into the world state; returns its id when stale."""
         span = self._tracer.start_span(semconv.SPAN_SENSORS_READ)
@@ -246,10 +306,7 @@ class HardwareRunner(InferenceRunnerBase):
             _record_error(span, exc)
             return None
         else:
-            self.aggregator.update_frame(frame)
-            if reader.sensor_id in self._sensor_errors:
-                self._sensor_errors.discard(reader.sensor_id)
-                self.aggregator.clear_error(reader.sensor_id)
+            self._accept_frame(frame)
             age_ms = frame.age_ms(self._clock.now_ns())
             metrics.record_histogram_ms(semconv.METRIC_SENSORS_AGE, age_ms, {semconv.ATTR_SENSOR_ID: reader.sensor_id})
             if span.is_recording():

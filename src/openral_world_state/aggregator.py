@@ -109,6 +109,13 @@ class WorldStateAggregator:
         self._frames: dict[str, SensorFrame] = {}
         self._errors: dict[str, str] = {}
 
+    def is_required(self, component: str) -> bool:
+        """Whether a stale ``component`` withholds the tick's action."""
+        for declared in self._components:
+            if declared.name == component:
+                return declared.required
+        raise self._unknown(component, declared=list(self.components), what="component")
+
     @property
     def components(self) -> tuple[str, ...]:
         """Declared component names: ``joint_state`` first, then the sensors in declaration order."""

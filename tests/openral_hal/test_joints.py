@@ -85,7 +85,7 @@ def test_initial_positions_take_given_values() -> None:
 def test_initial_position_of_an_unknown_joint_is_a_config_error() -> None:
     with pytest.raises(ROSConfigError) as info:
         initial_positions(_manifest(), {"pna": 0.1})
-    assert info.value.field == "initial_positions.pna"
+    assert info.value.field == "hal.params.initial_positions.pna"
     assert info.value.hint == "did you mean 'pan'?"
 
 
@@ -93,4 +93,4 @@ def test_initial_position_of_an_unknown_joint_is_a_config_error() -> None:
 def test_initial_position_outside_the_limits_is_a_config_error(value: float) -> None:
     with pytest.raises(ROSConfigError) as info:
         initial_positions(_manifest(), {"pan": value})
-    assert info.value.field == "initial_positions.pan"
+    assert info.value.field == "hal.params.initial_positions.pan"

@@ -96,7 +96,7 @@ def test_read_and_send_before_connect_raise() -> None:
 def test_wrong_param_names_the_key_and_suggests_the_right_one() -> None:
     with pytest.raises(ROSConfigError) as info:
         MujocoTwinHAL(SO101, {"realtime_factr": 2.0})
-    assert info.value.field == "realtime_factr"
+    assert info.value.field == "hal.params.realtime_factr"
     assert "realtime_factor" in str(info.value)
     assert info.value.hint == "did you mean 'realtime_factor'?"
 
@@ -104,7 +104,7 @@ def test_wrong_param_names_the_key_and_suggests_the_right_one() -> None:
 def test_initial_position_of_an_unknown_joint_is_a_config_error() -> None:
     with pytest.raises(ROSConfigError) as info:
         MujocoTwinHAL(SO101, {"initial_positions": {"elbow": 0.3}})
-    assert info.value.field == "initial_positions.elbow"
+    assert info.value.field == "hal.params.initial_positions.elbow"
 
 
 def test_robot_without_a_model_is_a_config_error() -> None:
@@ -147,6 +147,16 @@ def test_manifest_joint_missing_from_the_model_is_a_config_error(
     )
     with pytest.raises(ROSConfigError, match="no hinge or slide joint named 'k'"):
         MujocoTwinHAL(robot, {})
+
+
+def test_torque_actuator_is_a_config_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(tmp_path))
+    xml = ONE_JOINT.format(dt=0.002, mass=0.1, kp=5).replace(
+        '<position name="j" joint="j" kp="5"', '<motor name="j" joint="j"'
+    )
+    ref = _package_with_model(tmp_path, "twin_torque_motor", xml)
+    with pytest.raises(ROSConfigError, match="not a position servo"):
+        MujocoTwinHAL(_one_joint_robot(ref), {})
 
 
 def test_send_action_rejects_bad_actions_and_applies_nothing(twin: MujocoTwinHAL) -> None:

@@ -71,7 +71,7 @@ def test_initial_positions_param_and_default_clipping() -> None:
 def test_unknown_param_names_the_key_and_the_allowed_ones() -> None:
     with pytest.raises(ROSConfigError) as info:
         _hal(inital_positions={})
-    assert info.value.field == "inital_positions"
+    assert info.value.field == "hal.params.inital_positions"
     assert "allowed keys: initial_positions" in str(info.value)
     assert info.value.hint == "did you mean 'initial_positions'?"
 

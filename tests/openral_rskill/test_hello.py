@@ -219,7 +219,7 @@ def test_non_finite_start_pose_is_refused(robot: RobotManifest, make_world: Make
 def test_param_errors_name_the_field(robot: RobotManifest, params: dict[str, Any], field: str, text: str) -> None:
     with pytest.raises(ROSConfigError) as info:
         hello(robot, **params)
-    assert info.value.field == field
+    assert info.value.field == f"vla.params.{field}"
     assert text in str(info.value)
 
 

@@ -314,3 +314,37 @@ def test_transient_reader_error_clears_on_the_next_good_frame() -> None:
     assert len(hal.sent) == 3
     assert result.failed_ticks == 1
     assert skill.seen[-1].diagnostics["cam"].healthy
+
+
+def test_synced_cameras_within_skew_reach_the_skill() -> None:
+    from openral_core import SyncConfig  # noqa: PLC0415
+
+    clock = FakeClock()
+    cams = [ScriptedReader("left", clock, age_ms=2.0), ScriptedReader("right", clock, age_ms=4.0)]
+    configs = [SensorReaderConfig(sensor_id="left"), SensorReaderConfig(sensor_id="right")]
+    sync = SyncConfig(sensors=["left", "right"], max_skew_ms=5.0, timeout_ms=10.0)
+    runner, hal, skill = build(clock, readers=cams, sensor_configs=configs, sync=sync)
+    runner.activate()
+    runner.run(3)
+    assert len(hal.sent) == 3
+    frames = skill.seen[-1].image_frames
+    assert frames is not None
+    assert abs(frames["left"].stamp_ns - frames["right"].stamp_ns) <= 5_000_000
+
+
+def test_failed_sync_withholds_when_a_synced_camera_is_required() -> None:
+    from openral_core import SyncConfig  # noqa: PLC0415
+
+    clock = FakeClock()
+    # "right" always serves frames 60 ms old: never within 5 ms of "left".
+    cams = [ScriptedReader("left", clock, age_ms=1.0), ScriptedReader("right", clock, age_ms=60.0)]
+    configs = [SensorReaderConfig(sensor_id="left"), SensorReaderConfig(sensor_id="right")]
+    sync = SyncConfig(sensors=["left", "right"], max_skew_ms=5.0, timeout_ms=10.0)
+    runner, hal, skill = build(clock, readers=cams, sensor_configs=configs, sync=sync)
+    runner.activate()
+    result = runner.run(2)
+    assert hal.sent == []
+    assert skill.seen == []
+    assert runner.recent_ticks[0].withheld_reason == "stale_sensor"
+    assert sorted(runner.recent_ticks[0].stale_sensors) == ["left", "right"]
+    assert result.stale_reads == 4
