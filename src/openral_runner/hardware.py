@@ -23,6 +23,7 @@ from openral_core import (
     ROSError,
     ROSEStopRequested,
     ROSPerceptionStale,
+    ROSRuntimeError,
     ROSSafetyViolation,
     ROSSyncError,
     SensorFrame,
@@ -93,6 +94,8 @@ class HardwareRunner(InferenceRunnerBase):
         self._sync_required = any(aggregator.is_required(sensor_id) for sensor_id in synced)
         self._opened: ExitStack | None = None
         self._sensor_errors: set[str] = set()
+        self._episode_idx = -1
+        self._episode_open = False
         self._safety_observe = getattr(self.safety_client, "observe_state", None)
         self._safety_commit = getattr(self.safety_client, "commit", None)
         self._hal_attrs = {
@@ -138,6 +141,39 @@ class HardwareRunner(InferenceRunnerBase):
             close()
         except Exception as exc:  # a failing close must not stop the others from closing
             _log.warning("close failed", component=what, error=str(exc))
+
+    # -- episodes ------------------------------------------------------------------------
+
+    def episode_start(self, task_string: str) -> int:
+        """Begin an episode: the skill is reset and ``task_string`` becomes the task.
+
+        Returns:
+            The new episode's index (0 for the first).
+
+        Raises:
+            ROSRuntimeError: An episode is already open.
+        """
+        if self._episode_open:
+            raise ROSRuntimeError(f"episode {self._episode_idx} is still open: call episode_end() first")
+        self._episode_idx += 1
+        self._episode_open = True
+        self.task = task_string or None
+        self.skill.reset()
+        self.metadata.setdefault("episodes", []).append(
+            {"episode_idx": self._episode_idx, "task": task_string, "start_tick": self._tick_idx}
+        )
+        return self._episode_idx
+
+    def episode_end(self, *, success: bool) -> None:
+        """Close the open episode and record its outcome.
+
+        Raises:
+            ROSRuntimeError: No episode is open.
+        """
+        if not self._episode_open:
+            raise ROSRuntimeError("no episode is open: call episode_start() first")
+        self._episode_open = False
+        self.metadata["episodes"][-1].update(success=success, end_tick=self._tick_idx)
 
     # -- the tick ------------------------------------------------------------------------
 

@@ -348,3 +348,26 @@ def test_failed_sync_withholds_when_a_synced_camera_is_required() -> None:
     assert runner.recent_ticks[0].withheld_reason == "stale_sensor"
     assert sorted(runner.recent_ticks[0].stale_sensors) == ["left", "right"]
     assert result.stale_reads == 4
+
+
+def test_episodes_reset_the_skill_and_record_outcomes() -> None:
+    from openral_core import ROSRuntimeError  # noqa: PLC0415
+
+    clock = FakeClock()
+    runner, _, skill = build(clock)
+    runner.activate()
+    assert runner.episode_start("pick the cube") == 0
+    with pytest.raises(ROSRuntimeError, match="still open"):
+        runner.episode_start("again")
+    runner.run(2)
+    assert skill.seen[-1].task == "pick the cube"
+    runner.episode_end(success=True)
+    with pytest.raises(ROSRuntimeError, match="no episode"):
+        runner.episode_end(success=False)
+    assert runner.episode_start("place it") == 1
+    assert skill.calls.count("reset") == 2
+    runner.episode_end(success=False)
+    assert [(e["task"], e["success"]) for e in runner.metadata["episodes"]] == [
+        ("pick the cube", True),
+        ("place it", False),
+    ]
