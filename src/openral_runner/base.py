@@ -32,9 +32,11 @@ from openral_core import (
     ROSRuntimeError,
     RunResult,
     TickResult,
+    WorldState,
 )
 from openral_observability import metrics, semconv, trace_id_hex, traceparent, tracer
 from openral_runner.clock import Clock, SystemClock
+from openral_runner.observer import TickObserver
 from openral_runner.stats import RollingSamples
 
 _log = structlog.get_logger(__name__)
@@ -118,6 +120,8 @@ class InferenceRunnerBase(ABC):
         self._late_since_log = 0
         self.metadata: dict[str, Any] = {}
         self.recent_ticks: deque[TickResult] = deque(maxlen=_RECENT_TICKS)
+        self.observers: list[TickObserver] = []
+        self._last_world: WorldState | None = None
         self._tick_ms = RollingSamples()
         self._inference_ms = RollingSamples()
         self._jitter_us = RollingSamples()
@@ -201,6 +205,8 @@ class InferenceRunnerBase(ABC):
                 },
             )
             self._account(result, span)
+            if self.observers:
+                self._notify(result)
             if self._raise_pending:
                 error = ROSDeadlineMissed(
                     f"tick {idx} was {self._lateness_ms:.2f} ms past its deadline "
@@ -237,6 +243,14 @@ class InferenceRunnerBase(ABC):
         if self.deadline_overrun_policy is DeadlineOverrunPolicy.RAISE:
             self._raise_pending = True
         return False
+
+    def _notify(self, result: TickResult) -> None:
+        for observer in list(self.observers):
+            try:
+                observer.on_tick(result, self._last_world)
+            except Exception as exc:  # an observer must never stop the robot
+                _log.error("tick observer failed; detaching it", observer=type(observer).__name__, error=str(exc))
+                self.observers.remove(observer)
 
     def _log_late(self) -> None:
         """Log deadline misses at most once a second, with the count since the last line."""

@@ -125,6 +125,8 @@ class HardwareRunner(InferenceRunnerBase):
             if self.thumbnails is not None:
                 self.thumbnails.start()
                 stack.callback(self._safe_close, "thumbnails", self.thumbnails.stop)
+            for observer in self.observers:
+                stack.callback(self._safe_close, f"observer {type(observer).__name__}", observer.close)
             super().activate()
             self._opened = stack.pop_all()
 
@@ -212,6 +214,7 @@ class HardwareRunner(InferenceRunnerBase):
         metrics.record_histogram_ms(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t0) * 1e3, self._hal_attrs)
 
         world = self.aggregator.snapshot(task=self.task)
+        self._last_world = world
         if withheld is None and world.stale_required:
             withheld = "stale_sensor"
 

@@ -371,3 +371,34 @@ def test_episodes_reset_the_skill_and_record_outcomes() -> None:
         ("pick the cube", True),
         ("place it", False),
     ]
+
+
+def test_observers_see_every_tick_and_a_failing_one_is_detached() -> None:
+    clock = FakeClock()
+    runner, hal, _ = build(clock)
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.ticks: list[tuple[int, bool]] = []
+            self.closed = 0
+
+        def on_tick(self, tick, world) -> None:
+            self.ticks.append((tick.tick_idx, world is not None and world.joint_state is not None))
+
+        def close(self) -> None:
+            self.closed += 1
+
+    class Broken(Recorder):
+        def on_tick(self, tick, world) -> None:
+            raise RuntimeError("disk full")
+
+    good, broken = Recorder(), Broken()
+    runner.observers.extend([broken, good])
+    runner.activate()
+    result = runner.run(3)
+    assert result.n_ticks == 3
+    assert len(hal.sent) == 3
+    assert good.ticks == [(0, True), (1, True), (2, True)]
+    assert broken not in runner.observers
+    runner.deactivate()
+    assert good.closed == 1
