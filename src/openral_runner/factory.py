@@ -37,7 +37,10 @@ SKILL_REGISTRY = PluginRegistry(SKILLS_GROUP, kind="skill", field="vla.id")
 """Skill id → skill class (``Cls.from_config(params, robot=..., rate_hz=...)``)."""
 
 SENSOR_BACKEND_REGISTRY = PluginRegistry(SENSOR_BACKENDS_GROUP, kind="sensor backend", field="sensors[].backend")
-"""Backend id → reader class (``Cls.from_config(config, hal=..., robot=...)``)."""
+"""Backend id → reader class (``Cls.from_config(config, hal=..., robot=..., base_dir=...)``).
+
+``base_dir`` is the deployment file's directory: relative device paths resolve against it.
+"""
 
 HAL_REGISTRY = PluginRegistry(HALS_GROUP, kind="HAL adapter", field="hal.adapter")
 """Adapter id → HAL class (``Cls(manifest, params)``)."""
@@ -88,7 +91,7 @@ def build_runner(
     safety: SafetyClient = SAFETY_CLIENT_REGISTRY[env.safety.client].from_config(
         env.safety, robot=robot, rate_hz=env.rate_hz
     )
-    readers = [_build_reader(index, env, hal, robot) for index, _ in enumerate(env.sensors)]
+    readers = [_build_reader(index, env, hal, robot, base_dir) for index, _ in enumerate(env.sensors)]
     aggregator_kwargs: dict[str, Any] = {
         "joint_max_age_ms": JOINT_STATE_MAX_AGE_TICKS * 1e3 / env.rate_hz,
         "sensors": env.sensors,
@@ -115,10 +118,12 @@ def build_runner(
     return runner, skill
 
 
-def _build_reader(index: int, env: RobotEnvironment, hal: HAL, robot: RobotManifest) -> SensorReader:
+def _build_reader(
+    index: int, env: RobotEnvironment, hal: HAL, robot: RobotManifest, base_dir: Path | None
+) -> SensorReader:
     config = env.sensors[index]
     backend = SENSOR_BACKEND_REGISTRY.resolve(config.backend.value, field=f"sensors[{index}].backend")
-    reader: SensorReader = backend.from_config(config, hal=hal, robot=robot)
+    reader: SensorReader = backend.from_config(config, hal=hal, robot=robot, base_dir=base_dir)
     return reader
 
 

@@ -14,7 +14,7 @@ class SensorReader(Protocol):
     """One sensor's capture, running in the background and serving its latest frame.
 
     Backends live in ``openral_runner.backends`` and register in ``openral.sensor_backends``
-    (constructed with ``Cls.from_config(config, hal=..., robot=...)``).
+    (constructed with ``Cls.from_config(config, hal=..., robot=..., base_dir=...)``).
 
     ``read_latest`` never blocks on the device: it returns the freshest buffered frame, or
     raises ``ROSPerceptionStale`` when there is none yet or it is older than ``max_age_ms``

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -71,7 +72,9 @@ class Ros2ImageSensorReader:
         self._seq = 0
 
     @classmethod
-    def from_config(cls, config: SensorReaderConfig, *, hal: Any, robot: Any) -> Ros2ImageSensorReader:
+    def from_config(
+        cls, config: SensorReaderConfig, *, hal: Any, robot: Any, base_dir: Path | None = None
+    ) -> Ros2ImageSensorReader:
         """Plugin constructor; ``backend_params`` are validated as :class:`Ros2ImageParams`."""
         params = validate_model(
             Ros2ImageParams, dict(config.backend_params), source=f"sensors[{config.sensor_id}].backend_params"

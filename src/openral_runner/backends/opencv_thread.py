@@ -1,0 +1,525 @@
+"""``OpenCVThreadSensorReader``: one capture thread per camera over ``cv2.VideoCapture``.
+
+The source is a device index (``0``), a device node (``/dev/video0``), a stream URL
+(``rtsp://…``) or a video file. A file can be *paced* (frames released on an absolute
+schedule at the requested fps, so it behaves like a live camera) and *looped*.
+
+Capture stamps: the thread calls ``grab()`` (which waits for and takes the next frame),
+reads ``clock_ns()`` as soon as it returns, then ``retrieve()``s (decodes) the pixels. The
+stamp therefore excludes decoding and colour conversion, and staleness is measured from it.
+
+Frames are not copied: ``retrieve()`` allocates a fresh array for every frame, and that
+array becomes ``SensorFrame.data`` as is (a frame already served is never overwritten).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal, Self
+
+import numpy as np
+import structlog
+from pydantic import BaseModel, ConfigDict, Field
+
+from openral_core import (
+    FrameEncoding,
+    ROSConfigError,
+    ROSDependencyMissing,
+    ROSHardwareError,
+    ROSRuntimeError,
+    SensorFrame,
+    SensorReaderConfig,
+)
+from openral_core.config import validate_model
+from openral_runner.frame_slot import LatestFrameSlot, frame_from_array
+
+try:
+    import cv2
+except ImportError as exc:  # pragma: no cover - exercised only without the extra
+    raise ROSDependencyMissing("cv2", extra="opencv", needed_for="the opencv_thread sensor backend") from exc
+
+_log = structlog.get_logger(__name__)
+
+ApiPreference = Literal["any", "v4l2", "ffmpeg", "gstreamer"]
+
+_API_CONSTANTS: dict[str, int] = {
+    "any": cv2.CAP_ANY,
+    "v4l2": cv2.CAP_V4L2,
+    "ffmpeg": cv2.CAP_FFMPEG,
+    "gstreamer": cv2.CAP_GSTREAMER,
+}
+
+_CONVERSIONS: dict[tuple[int, FrameEncoding], int | None] = {
+    (3, FrameEncoding.BGR8): None,
+    (3, FrameEncoding.RGB8): cv2.COLOR_BGR2RGB,
+    (3, FrameEncoding.MONO8): cv2.COLOR_BGR2GRAY,
+    (2, FrameEncoding.BGR8): cv2.COLOR_GRAY2BGR,
+    (2, FrameEncoding.RGB8): cv2.COLOR_GRAY2RGB,
+    (2, FrameEncoding.MONO8): None,
+}
+"""(ndim of the captured array, wanted encoding) → ``cv2.cvtColor`` code (``None``: as captured)."""
+
+FPS_SHORTFALL = 0.10
+"""A delivered rate more than this fraction below the requested fps is logged as a warning."""
+
+FPS_CHECK_S = 1.0
+"""The delivered rate is measured over at least this long after ``open()``..."""
+
+FPS_CHECK_FRAMES = 10
+"""...and over at least this many frame periods at the requested fps."""
+
+JOIN_TIMEOUT_S = 2.0
+"""How long ``close()`` waits for the capture thread."""
+
+
+class OpenCVThreadParams(BaseModel):
+    """``backend_params`` of the ``opencv_thread`` backend.
+
+    fps, width, height, encoding and max_age_ms come from the sensor's own fields.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    device: int | str = Field(description="device index, device node, stream URL or video file path")
+    loop: bool = Field(default=False, description="video files: start again at the end")
+    paced: bool | None = Field(
+        default=None, description="video files: release frames at the requested fps (default true for files)"
+    )
+    api_preference: ApiPreference = "any"
+    fourcc: str | None = Field(default=None, min_length=4, max_length=4, description="pixel format, e.g. MJPG")
+    buffer_size: int | None = Field(default=None, ge=1, description="driver frame queue length (CAP_PROP_BUFFERSIZE)")
+    max_read_failures: int = Field(default=10, ge=1, description="live sources: failed reads in a row before failing")
+
+
+class OpenCVThreadSensorReader:
+    """Captures one camera or video on a background thread; serves its latest frame.
+
+    Args:
+        sensor_id: Reader id.
+        device: Device index, device node (``/dev/video0``), stream URL or video file path.
+        fps: Requested frame rate (set on live devices; the pacing rate of paced files).
+        width / height: Requested size; open fails if the source delivers another size.
+        encoding: ``BGR8`` (OpenCV's native order), ``RGB8`` or ``MONO8``.
+        default_max_age_ms: Staleness limit when ``read_latest`` is given none.
+        loop: Video files: rewind at the end instead of stopping.
+        paced: Video files: release frame k at ``t0 + k / fps`` (late frames skip slots,
+            never burst); unpaced files are read as fast as they decode. Default: true for files.
+        api_preference: OpenCV capture API (``any``, ``v4l2``, ``ffmpeg``, ``gstreamer``).
+        fourcc: Pixel format to request from a live device (``MJPG``, ``YUYV``).
+        buffer_size: Driver frame queue length; 1 keeps the served frame freshest.
+        max_read_failures: Failed reads in a row after which a live source is declared failed.
+        clock_ns: Monotonic clock of the capture stamps.
+
+    Raises:
+        ROSConfigError: An unsupported encoding, a non-positive fps, or loop/paced for a live source.
+    """
+
+    def __init__(
+        self,
+        *,
+        sensor_id: str,
+        device: int | str | Path,
+        fps: float = 30.0,
+        width: int | None = None,
+        height: int | None = None,
+        encoding: FrameEncoding = FrameEncoding.BGR8,
+        default_max_age_ms: float = 100.0,
+        loop: bool = False,
+        paced: bool | None = None,
+        api_preference: ApiPreference = "any",
+        fourcc: str | None = None,
+        buffer_size: int | None = None,
+        max_read_failures: int = 10,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        if isinstance(device, Path):
+            device = str(device)
+        if isinstance(device, str) and device.isdigit():
+            device = int(device)
+        if not fps > 0:
+            raise ROSConfigError(f"sensor '{sensor_id}': fps must be positive, got {fps}")
+        if FrameEncoding(encoding) not in {FrameEncoding.BGR8, FrameEncoding.RGB8, FrameEncoding.MONO8}:
+            raise ROSConfigError(
+                f"sensor '{sensor_id}': the opencv_thread backend cannot deliver {encoding}",
+                hint="use encoding bgr8, rgb8 or mono8",
+            )
+        self.is_file = isinstance(device, str) and _is_file_path(device)
+        if not self.is_file and (loop or paced):
+            raise ROSConfigError(
+                f"sensor '{sensor_id}': loop and paced apply to video files only, not to {device!r}",
+                hint="remove loop/paced from backend_params",
+            )
+        self.sensor_id = sensor_id
+        self.device: int | str = device
+        self.fps = float(fps)
+        self.width = width
+        self.height = height
+        self.encoding = FrameEncoding(encoding)
+        self.loop = loop
+        self.paced = self.is_file if paced is None else paced
+        self.api_preference = api_preference
+        self.fourcc = fourcc
+        self.buffer_size = buffer_size
+        self.max_read_failures = max_read_failures
+        self._clock_ns = clock_ns
+        self._slot = LatestFrameSlot(sensor_id, default_max_age_ms=default_max_age_ms, clock_ns=clock_ns)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._seq = 0
+        self._dropped = 0
+        self._read_failures = 0
+        self._loops = 0
+        self._eos = False
+        self._size: tuple[int, int] | None = None
+        self._file_fps: float | None = None
+        self._measured_fps: float | None = None
+
+    @classmethod
+    def from_config(
+        cls, config: SensorReaderConfig, *, hal: Any, robot: Any, base_dir: Path | None = None
+    ) -> OpenCVThreadSensorReader:
+        """Plugin constructor; ``backend_params`` are validated as :class:`OpenCVThreadParams`.
+
+        Args:
+            config: The sensor's block of the deployment.
+            hal: Unused (the camera is not part of the HAL).
+            robot: Unused.
+            base_dir: Directory a relative video file path is resolved against (the
+                deployment file's); the working directory when ``None``.
+
+        Raises:
+            ROSConfigError: A wrong or missing parameter; the message names it and the allowed keys.
+        """
+        params = validate_model(
+            OpenCVThreadParams,
+            dict(config.backend_params),
+            source="the opencv_thread backend",
+            field_prefix=f"sensors[{config.sensor_id}].backend_params",
+        )
+        device = params.device
+        if isinstance(device, str) and _is_file_path(device) and base_dir is not None:
+            path = Path(device).expanduser()
+            device = str(path if path.is_absolute() else base_dir / path)
+        return cls(
+            sensor_id=config.sensor_id,
+            device=device,
+            fps=config.fps,
+            width=config.width,
+            height=config.height,
+            encoding=config.encoding,
+            default_max_age_ms=config.max_age_ms,
+            loop=params.loop,
+            paced=params.paced,
+            api_preference=params.api_preference,
+            fourcc=params.fourcc,
+            buffer_size=params.buffer_size,
+            max_read_failures=params.max_read_failures,
+        )
+
+    # -- lifecycle -----------------------------------------------------------------------
+
+    @property
+    def is_open(self) -> bool:
+        """True between ``open()`` and ``close()``."""
+        return self._slot.is_open
+
+    def open(self) -> None:
+        """Open the source, read one frame to learn its real size, and start the capture thread.
+
+        Idempotent. The delivered rate is measured in the background over the first second.
+
+        Raises:
+            ROSConfigError: The video file does not exist or cannot be decoded, the source
+                delivers another size than requested, or the API is not in this OpenCV build.
+            ROSHardwareError: The device or stream cannot be opened or delivers no frame.
+        """
+        if self.is_open:
+            return
+        cap = self._open_capture()
+        try:
+            self._configure(cap)
+            first = self._first_frame(cap)
+        except BaseException:
+            cap.release()
+            raise
+        self._seq = 0
+        self._dropped = 0
+        self._read_failures = 0
+        self._loops = 0
+        self._eos = False
+        self._measured_fps = None
+        self._stop = threading.Event()  # a fresh one: a thread stuck from a previous run keeps its own
+        self._slot.open()
+        stamp_ns, pixels = first
+        self._publish(stamp_ns, pixels)
+        self._thread = threading.Thread(
+            target=self._run, args=(cap, stamp_ns, self._stop), name=f"openral-opencv-{self.sensor_id}", daemon=True
+        )
+        self._thread.start()
+        _log.info("opencv camera opened", sensor=self.sensor_id, device=str(self.device), size=self._size)
+
+    def close(self) -> None:
+        """Stop and join the capture thread, release the source. Idempotent.
+
+        If the thread does not stop within ``JOIN_TIMEOUT_S`` (a driver stuck in a read), it
+        releases the device itself when that read returns.
+        """
+        self._stop.set()
+        self._slot.close()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(JOIN_TIMEOUT_S)
+            if thread.is_alive():
+                _log.warning("opencv capture thread did not stop in time", sensor=self.sensor_id)
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    # -- reading -------------------------------------------------------------------------
+
+    def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
+        """The most recent frame, without waiting for a new one.
+
+        Raises:
+            ROSRuntimeError: The reader is closed, or the source failed.
+            ROSPerceptionStale: No frame yet, or the latest is older than the limit.
+        """
+        return self._slot.read_latest(max_age_ms)
+
+    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
+        """Wait for a frame captured after ``newer_than_ns``, at most until ``deadline_ns``.
+
+        Raises:
+            ROSPerceptionStale: No such frame by the deadline.
+            ROSRuntimeError: The reader is closed or failed.
+        """
+        return self._slot.read_synced(deadline_ns, newer_than_ns=newer_than_ns)
+
+    @property
+    def delivered_fps(self) -> float:
+        """Current rate of captured frames, from capture stamps (0 before two frames)."""
+        return self._slot.delivered_fps
+
+    def report(self) -> dict[str, Any]:
+        """Requested versus delivered: rate, size, frames captured, slots dropped, read failures."""
+        width, height = self._size or (None, None)
+        return {
+            "sensor_id": self.sensor_id,
+            "device": str(self.device),
+            "source": "file" if self.is_file else "live",
+            "requested_fps": self.fps,
+            "delivered_fps": round(self.delivered_fps, 2),
+            "measured_fps": None if self._measured_fps is None else round(self._measured_fps, 2),
+            "file_fps": self._file_fps,
+            "requested_size": (self.width, self.height),
+            "width": width,
+            "height": height,
+            "encoding": self.encoding.value,
+            "frames": self._slot.frames_published,
+            "dropped": self._dropped,
+            "read_failures": self._read_failures,
+            "loops": self._loops,
+            "end_of_stream": self._eos,
+        }
+
+    # -- opening -------------------------------------------------------------------------
+
+    def _open_capture(self) -> Any:
+        """A new, opened ``cv2.VideoCapture`` on the source (overridden in tests)."""
+        api = _API_CONSTANTS[self.api_preference]
+        if api != cv2.CAP_ANY and not cv2.videoio_registry.hasBackend(api):
+            hint = (
+                "use the gstreamer sensor backend" if self.api_preference == "gstreamer" else "use api_preference: any"
+            )
+            raise ROSConfigError(
+                f"sensor '{self.sensor_id}': this OpenCV build has no {self.api_preference} capture API", hint=hint
+            )
+        if self.is_file and not Path(str(self.device)).is_file():
+            raise ROSConfigError(
+                f"sensor '{self.sensor_id}': video file not found: {self.device}",
+                hint="check backend_params.device (relative paths are resolved against the deployment file)",
+            )
+        cv2.setNumThreads(1)
+        try:
+            cap = cv2.VideoCapture(self.device, api)
+        except cv2.error as exc:
+            raise ROSHardwareError(f"sensor '{self.sensor_id}': cannot open {self.device!r}: {exc}") from exc
+        if cap.isOpened():
+            return cap
+        cap.release()
+        if self.is_file:
+            raise ROSConfigError(
+                f"sensor '{self.sensor_id}': OpenCV cannot decode video file {self.device}",
+                hint="use a format the ffmpeg in opencv-python-headless reads (mp4, avi, mkv)",
+            )
+        raise ROSHardwareError(
+            f"sensor '{self.sensor_id}': cannot open camera {self.device!r}: "
+            "check it is connected, not in use by another process, and readable by this user"
+        )
+
+    def _configure(self, cap: Any) -> None:
+        """Apply the requested pixel format, size, rate and buffer length (live sources)."""
+        if self.is_file:
+            self._file_fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
+            return
+        if self.fourcc is not None:
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.fourcc))
+        if self.width is not None:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
+        if self.height is not None:
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
+        cap.set(cv2.CAP_PROP_FPS, self.fps)
+        if self.buffer_size is not None:
+            cap.set(cv2.CAP_PROP_BUFFERSIZE, self.buffer_size)
+
+    def _first_frame(self, cap: Any) -> tuple[int, np.ndarray]:
+        """Read one frame synchronously; check the delivered size against the requested one."""
+        captured = self._capture(cap)
+        if captured is None:
+            if self.is_file:
+                raise ROSConfigError(f"sensor '{self.sensor_id}': video file {self.device} holds no frame")
+            raise ROSHardwareError(f"sensor '{self.sensor_id}': camera {self.device!r} opened but delivered no frame")
+        height, width = captured[1].shape[:2]
+        wanted = (self.width or width, self.height or height)
+        if wanted != (width, height):
+            what = "the video file is" if self.is_file else "the device delivers"
+            raise ROSConfigError(
+                f"sensor '{self.sensor_id}': requested {wanted[0]}x{wanted[1]} from {self.device!r}, "
+                f"but {what} {width}x{height}",
+                hint=f"set width: {width} and height: {height}, or leave them unset",
+            )
+        self._size = (width, height)
+        return captured
+
+    # -- capture thread ------------------------------------------------------------------
+
+    def _capture(self, cap: Any) -> tuple[int, np.ndarray] | None:
+        """Grab, stamp, retrieve and convert one frame; ``None`` when the source gave none."""
+        if not cap.grab():
+            return None
+        stamp_ns = self._clock_ns()
+        ok, pixels = cap.retrieve()
+        if not ok or pixels is None:
+            return None
+        code = _CONVERSIONS.get((pixels.ndim, self.encoding))
+        if code is not None:
+            pixels = cv2.cvtColor(pixels, code)
+        return stamp_ns, pixels
+
+    def _publish(self, stamp_ns: int, pixels: np.ndarray) -> None:
+        self._slot.publish(
+            frame_from_array(self.sensor_id, pixels, stamp_ns=stamp_ns, seq=self._seq, encoding=self.encoding)
+        )
+        self._seq += 1
+
+    def _run(self, cap: Any, t0_ns: int, stop: threading.Event) -> None:
+        """Capture until stopped, at the end of a non-looping file, or until a failure is latched."""
+        period_ns = round(1e9 / self.fps)
+        due_ns = t0_ns + period_ns
+        check_at_ns = t0_ns + round(max(FPS_CHECK_S, FPS_CHECK_FRAMES / self.fps) * 1e9)
+        failures = 0
+        try:
+            while not stop.is_set():
+                if self.paced:
+                    due_ns = self._wait_for_slot(due_ns, period_ns, stop)
+                    if stop.is_set():
+                        break
+                captured = self._capture(cap)
+                if captured is None and self.is_file and self.loop:
+                    cap = self._rewind(cap)
+                    captured = self._capture(cap)
+                    if captured is None:
+                        raise ROSRuntimeError(f"sensor '{self.sensor_id}': no frame after rewinding {self.device}")
+                if captured is None:
+                    if self.is_file:
+                        self._eos = True
+                        _log.info("end of video file; serving the last frame until it is stale", sensor=self.sensor_id)
+                        return
+                    failures += 1
+                    self._read_failures += 1
+                    if failures >= self.max_read_failures:
+                        raise ROSRuntimeError(
+                            f"sensor '{self.sensor_id}': camera {self.device!r} delivered no frame in "
+                            f"{failures} reads in a row: check the cable and the device"
+                        )
+                    stop.wait(period_ns / 1e9)
+                    continue
+                failures = 0
+                if not self.is_file:
+                    self._count_gap(captured[0], period_ns)
+                self._publish(*captured)
+                if check_at_ns and captured[0] >= check_at_ns and (self.paced or not self.is_file):
+                    self._check_rate(self._seq - 1, captured[0] - t0_ns)
+                    check_at_ns = 0
+        except ROSRuntimeError as exc:
+            self._slot.fail(exc)
+        except Exception as exc:
+            error = ROSRuntimeError(f"sensor '{self.sensor_id}': capture from {self.device!r} failed: {exc}")
+            error.__cause__ = exc
+            self._slot.fail(error)
+        finally:
+            cap.release()
+
+    def _wait_for_slot(self, due_ns: int, period_ns: int, stop: threading.Event) -> int:
+        """Sleep until the frame slot at ``due_ns``; when late, skip (and count) the slots missed.
+
+        Returns:
+            The slot after the one being captured (never a catch-up burst).
+        """
+        now_ns = self._clock_ns()
+        if now_ns < due_ns:
+            stop.wait((due_ns - now_ns) / 1e9)
+        else:
+            missed = (now_ns - due_ns) // period_ns
+            self._dropped += missed
+            due_ns += missed * period_ns
+        return due_ns + period_ns
+
+    def _rewind(self, cap: Any) -> Any:
+        """Seek a looping file back to its first frame (reopening it if seeking fails)."""
+        self._loops += 1
+        if cap.set(cv2.CAP_PROP_POS_FRAMES, 0):
+            return cap
+        cap.release()
+        return self._open_capture()
+
+    def _count_gap(self, stamp_ns: int, period_ns: int) -> None:
+        """Count frames a live source dropped, from gaps of 1.5 periods or more between stamps."""
+        latest = self._slot.peek()
+        if latest is not None:
+            gap = stamp_ns - latest.stamp_ns
+            if gap >= 1.5 * period_ns:
+                self._dropped += round(gap / period_ns) - 1
+
+    def _check_rate(self, intervals: int, elapsed_ns: int) -> None:
+        """Log once whether the source delivers the requested rate."""
+        measured = intervals * 1e9 / elapsed_ns if elapsed_ns > 0 else 0.0
+        self._measured_fps = measured
+        if measured < (1.0 - FPS_SHORTFALL) * self.fps:
+            _log.warning(
+                "camera delivers fewer frames than requested",
+                sensor=self.sensor_id,
+                device=str(self.device),
+                requested_fps=self.fps,
+                delivered_fps=round(measured, 1),
+                hint="lower fps, request fourcc MJPG or a smaller size, or check USB bandwidth and exposure",
+            )
+        else:
+            _log.info("camera rate measured", sensor=self.sensor_id, requested_fps=self.fps, delivered_fps=measured)
+
+
+def _is_file_path(device: str) -> bool:
+    return "://" not in device and not device.startswith("/dev/") and not device.isdigit()
+
+
+__all__ = ["OpenCVThreadParams", "OpenCVThreadSensorReader"]
