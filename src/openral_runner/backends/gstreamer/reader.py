@@ -1,0 +1,484 @@
+"""``GStreamerSensorReader``: frames from a GStreamer pipeline's appsink into a latest-frame slot.
+
+The pipeline comes from a :class:`PipelineSpec` (built by :func:`build_pipeline_string`) or is
+a raw ``gst-launch`` string; its policy leg ends in an appsink whose ``new-sample`` signal
+runs :meth:`GStreamerSensorReader._on_new_sample` on the streaming thread. A callback rather
+than a pull thread: the frame is published the moment the sink has it (no poll interval), and
+there is no extra Python thread to wake, schedule and join.
+
+Capture stamps: the pipeline is forced onto a ``GstSystemClock`` of type ``MONOTONIC``
+(``CLOCK_MONOTONIC``, the clock of ``time.monotonic_ns``), so a buffer's capture time is
+``base_time + running_time(PTS)`` on the very clock staleness is measured with. Live sources
+stamp PTS at capture (``v4l2src`` from the driver's timestamp), so decoding and conversion are
+not counted as freshness. A buffer without PTS is stamped on arrival; a stamp later than the
+arrival (a file decoded ahead of its presentation time) is clamped to the arrival.
+
+Copies: the buffer is mapped and its bytes taken once (the capture copy, needed because the
+GstBuffer returns to its pool); the frame is a numpy view over those bytes with the real row
+stride, so padded rows (e.g. 161 BGR pixels = 483 bytes, padded to 484) come out as exactly
+``width`` pixels without another copy.
+
+Formats: the appsink's caps are narrowed to BGR, RGB and GRAY8 (``bgr8``, ``rgb8``, ``mono8``);
+a pipeline whose upstream can only deliver something else is a ``ROSConfigError`` at ``open()``.
+
+Errors: a bus sync handler (called on the posting thread, so no bus thread either) latches an
+ERROR as ``ROSRuntimeError`` naming the element, raised by the next read; a failure while
+starting is raised by ``open()`` itself. EOS is not an error: the last frame is served until it
+is older than the limit.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+import numpy as np
+import structlog
+
+from openral_core import (
+    FrameEncoding,
+    ROSConfigError,
+    ROSDependencyMissing,
+    ROSError,
+    ROSRuntimeError,
+    SensorFrame,
+    SensorReaderConfig,
+)
+from openral_runner.backends.gstreamer.params import refield, settings_from_config
+from openral_runner.backends.gstreamer.pipeline import (
+    PipelineSpec,
+    PixelFormat,
+    Platform,
+    build_pipeline_string,
+    detect_platform,
+    ensure_appsink_name,
+)
+from openral_runner.frame_slot import LatestFrameSlot, frame_from_array
+
+try:
+    import gi
+
+    gi.require_version("Gst", "1.0")
+    gi.require_version("GstApp", "1.0")
+    gi.require_version("GstVideo", "1.0")
+    from gi.repository import GLib, GObject, Gst, GstApp, GstVideo
+except ImportError as exc:  # pragma: no cover - exercised only without the extra
+    raise ROSDependencyMissing("gi", extra="gstreamer", needed_for="the gstreamer sensor backend") from exc
+except ValueError as exc:  # pragma: no cover - gi present, typelibs missing
+    raise ROSConfigError(
+        f"the gstreamer sensor backend needs the GStreamer introspection data: {exc}",
+        hint="apt-get install gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0",
+    ) from exc
+
+Gst.init(None)
+
+_log = structlog.get_logger(__name__)
+
+_ENCODINGS: dict[Any, FrameEncoding] = {
+    GstVideo.VideoFormat.BGR: FrameEncoding.BGR8,
+    GstVideo.VideoFormat.RGB: FrameEncoding.RGB8,
+    GstVideo.VideoFormat.GRAY8: FrameEncoding.MONO8,
+}
+SUPPORTED_FORMATS: tuple[str, ...] = tuple(f.value for f in PixelFormat)
+"""Raw formats the appsink accepts (``BGR`` → ``bgr8``, ``RGB`` → ``rgb8``, ``GRAY8`` → ``mono8``)."""
+
+_SUPPORTED_CAPS = f"video/x-raw,format=(string){{{','.join(SUPPORTED_FORMATS)}}}"
+_CONVERT_HINT = "end the pipeline with '! videoconvert ! video/x-raw,format=BGR ! appsink'"
+_FORMAT_FIELD = re.compile(r"format=\(string\)(\{[^}]*\}|[\w]+)")
+_MISSING_ELEMENT = re.compile(r'no element "([^"]+)"')
+_PACKAGE_HINTS = (
+    ("avdec_", "apt-get install gstreamer1.0-libav"),
+    ("nv", "this NVIDIA element needs the NVIDIA GStreamer plugins (Jetson L4T or the nvcodec plugin)"),
+    ("x264", "apt-get install gstreamer1.0-plugins-ugly"),
+)
+_NULL_STATE_TIMEOUT_NS = 5 * Gst.SECOND
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """How one negotiated caps lays pixels out in a buffer."""
+
+    caps: Any
+    encoding: FrameEncoding
+    shape: tuple[int, ...]
+    strides: tuple[int, ...]
+    offset: int
+
+
+class GStreamerSensorReader:
+    """Runs a GStreamer pipeline and serves the latest frame of its appsink.
+
+    Args:
+        sensor_id: Reader id.
+        spec: Pipeline description (exactly one of ``spec`` and ``pipeline``).
+        pipeline: Raw ``gst-launch`` string ending in an appsink (renamed to ``appsink_name``).
+        platform: Platform the spec is built for; detected when ``None``.
+        appsink_name: The appsink to read (raw pipelines; a spec names its own).
+        default_max_age_ms: Staleness limit when ``read_latest`` is given none.
+        width / height: Expected frame size; a different delivered size is a reader failure.
+            Default: the spec's size.
+        frame_id: Optical frame of the camera, copied into every frame.
+
+    Raises:
+        ROSConfigError: Both or neither of spec and pipeline; a pipeline with no appsink; CSI or
+            NVMM off Tegra.
+    """
+
+    def __init__(
+        self,
+        *,
+        sensor_id: str,
+        spec: PipelineSpec | None = None,
+        pipeline: str | None = None,
+        platform: Platform | None = None,
+        appsink_name: str | None = None,
+        default_max_age_ms: float = 100.0,
+        width: int | None = None,
+        height: int | None = None,
+        frame_id: str | None = None,
+    ) -> None:
+        if (spec is None) == (pipeline is None):
+            raise ROSConfigError(
+                f"sensor '{sensor_id}': give exactly one of spec (a PipelineSpec) or pipeline (a raw string)"
+            )
+        self.sensor_id = sensor_id
+        self.frame_id = frame_id
+        if spec is not None:
+            if appsink_name not in (None, spec.appsink_name):
+                raise ROSConfigError(
+                    f"sensor '{sensor_id}': appsink_name '{appsink_name}' differs from the spec's "
+                    f"'{spec.appsink_name}'",
+                    hint="set PipelineSpec.appsink_name instead",
+                )
+            platform = platform or detect_platform(probe=_has_element)
+            self.pipeline_string = build_pipeline_string(spec, platform, element_present=_has_element)
+            self.appsink_name = spec.appsink_name
+            width = spec.width if width is None else width
+            height = spec.height if height is None else height
+        else:
+            self.appsink_name = appsink_name or "openral_sink"
+            self.pipeline_string = ensure_appsink_name(str(pipeline), self.appsink_name)
+        self.spec = spec
+        self.width = width
+        self.height = height
+        self._slot = LatestFrameSlot(sensor_id, default_max_age_ms=default_max_age_ms, clock_ns=time.monotonic_ns)
+        self._clock = GObject.new(Gst.SystemClock, clock_type=Gst.ClockType.MONOTONIC)
+        self._lock = threading.Lock()
+        self._pipeline: Any = None
+        self._sink: Any = None
+        self._sample_handler: int | None = None
+        self._layout: _Layout | None = None
+        self._seq = 0
+        self._eos = False
+        self._bus_error: ROSRuntimeError | None = None
+
+    @classmethod
+    def from_config(
+        cls, config: SensorReaderConfig, *, hal: Any, robot: Any, base_dir: Path | None = None
+    ) -> GStreamerSensorReader:
+        """Plugin constructor; ``backend_params`` are validated as :class:`~.params.GStreamerParams`.
+
+        Args:
+            config: The sensor's block of the deployment.
+            hal: Unused (the camera is not part of the HAL).
+            robot: Unused.
+            base_dir: Directory a relative file path is resolved against (the deployment
+                file's); the working directory when ``None``.
+
+        Raises:
+            ROSConfigError: A wrong or missing parameter, named as ``sensors[<id>].backend_params.<key>``.
+        """
+        settings = settings_from_config(config, base_dir=base_dir)
+        try:
+            return cls(
+                sensor_id=settings.sensor_id,
+                spec=settings.spec,
+                pipeline=settings.pipeline,
+                platform=settings.platform,
+                appsink_name=None if settings.spec is not None else settings.appsink_name,
+                default_max_age_ms=settings.default_max_age_ms,
+                width=settings.width,
+                height=settings.height,
+            )
+        except ROSConfigError as exc:  # a builder error names a spec field: say where it came from
+            if exc.field is not None and exc.field.startswith("sensors["):
+                raise
+            key = "" if exc.field is None else f".{exc.field}"
+            raise refield(exc, f"sensors[{settings.sensor_id}].backend_params{key}") from exc
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    @property
+    def is_open(self) -> bool:
+        """True between ``open()`` and ``close()``."""
+        return self._slot.is_open
+
+    @property
+    def eos(self) -> bool:
+        """The pipeline reached end of stream (a file ended); the last frame ages out."""
+        return self._eos
+
+    @property
+    def delivered_fps(self) -> float:
+        """Rate of frames actually captured, from capture stamps (0 before two frames)."""
+        return self._slot.delivered_fps
+
+    @property
+    def frames_published(self) -> int:
+        """Frames delivered since ``open()``."""
+        return self._slot.frames_published
+
+    def open(self) -> None:
+        """Parse the pipeline, attach to its appsink and bus, and set it PLAYING. Idempotent.
+
+        Raises:
+            ROSConfigError: The pipeline does not parse, has no such appsink, or can only
+                deliver a format the reader does not take.
+            ROSRuntimeError: The pipeline fails to start (e.g. a missing device or file).
+        """
+        with self._lock:
+            if self._pipeline is not None:
+                return
+            self._slot.open()
+            self._seq = 0
+            self._eos = False
+            self._layout = None
+            self._bus_error = None
+            try:
+                self._start()
+            except BaseException:
+                self._stop()
+                self._slot.close()
+                raise
+            _log.info("gstreamer sensor open", sensor_id=self.sensor_id, pipeline=self.pipeline_string)
+
+    def close(self) -> None:
+        """Stop the pipeline (state NULL) and stop serving frames. Idempotent."""
+        with self._lock:
+            self._slot.close()
+            self._stop()
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- reading ---------------------------------------------------------------------------
+
+    def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
+        """The most recent frame, without waiting.
+
+        Raises:
+            ROSPerceptionStale: No frame yet, or the latest is older than the limit.
+            ROSRuntimeError: The reader is closed, or the pipeline failed (latched bus error).
+        """
+        return self._slot.read_latest(max_age_ms)
+
+    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
+        """Wait for a frame captured after ``newer_than_ns``, at most until ``deadline_ns``.
+
+        Raises:
+            ROSPerceptionStale: No such frame by the deadline.
+            ROSRuntimeError: The reader is closed or failed.
+        """
+        return self._slot.read_synced(deadline_ns, newer_than_ns=newer_than_ns)
+
+    # -- pipeline plumbing -----------------------------------------------------------------
+
+    def _start(self) -> None:
+        try:
+            pipeline = Gst.parse_launch(self.pipeline_string)
+        except GLib.Error as exc:
+            raise _parse_error(self.sensor_id, self.pipeline_string, exc) from exc
+        if not isinstance(pipeline, Gst.Pipeline):
+            raise ROSConfigError(
+                f"sensor '{self.sensor_id}': '{self.pipeline_string}' is a single element, not a pipeline",
+                hint="link a source to the appsink: 'videotestsrc ! videoconvert ! appsink'",
+            )
+        self._pipeline = pipeline
+        sink = pipeline.get_by_name(self.appsink_name)
+        if not isinstance(sink, GstApp.AppSink):
+            found = "no element" if sink is None else f"a {type(sink).__name__}, not an appsink,"
+            raise ROSConfigError(
+                f"sensor '{self.sensor_id}': the pipeline has {found} named '{self.appsink_name}'",
+                hint=f"end the pipeline with 'appsink name={self.appsink_name}'",
+            )
+        self._sink = sink
+        self._restrict_caps(sink)
+        sink.set_property("emit-signals", True)
+        self._sample_handler = sink.connect("new-sample", self._on_new_sample)
+        pipeline.use_clock(self._clock)
+        pipeline.get_bus().set_sync_handler(self._on_bus_message)
+        if pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
+            cause = self._bus_error
+            detail = str(cause).removeprefix(f"sensor '{self.sensor_id}': ") if cause else self.pipeline_string
+            raise ROSRuntimeError(f"sensor '{self.sensor_id}': the pipeline failed to start: {detail}")
+
+    def _stop(self) -> None:
+        pipeline, sink, handler = self._pipeline, self._sink, self._sample_handler
+        self._pipeline = self._sink = self._sample_handler = None
+        if pipeline is None:
+            return
+        pipeline.set_state(Gst.State.NULL)
+        pipeline.get_state(_NULL_STATE_TIMEOUT_NS)
+        if sink is not None and handler is not None:
+            sink.disconnect(handler)
+        pipeline.get_bus().set_sync_handler(None)
+
+    def _restrict_caps(self, sink: Any) -> None:
+        """Let the appsink accept only formats that become frames; reject a pipeline that cannot deliver one."""
+        supported = Gst.Caps.from_string(_SUPPORTED_CAPS)
+        own = sink.get_property("caps")
+        wanted = supported if own is None or own.is_any() else own.intersect(supported)
+        if wanted.is_empty():
+            raise ROSConfigError(
+                f"sensor '{self.sensor_id}': appsink caps '{own.to_string()}' allow none of the formats the "
+                f"reader takes ({', '.join(SUPPORTED_FORMATS)})",
+                hint=_CONVERT_HINT,
+            )
+        sink.set_property("caps", wanted)
+        upstream = sink.get_static_pad("sink").peer_query_caps(None)
+        if upstream is None or upstream.is_any() or upstream.is_empty() or upstream.can_intersect(wanted):
+            return
+        described = upstream.to_string()
+        formats = sorted({f for match in _FORMAT_FIELD.findall(described) for f in match.strip("{}").split(",")})
+        named = ", ".join(f.strip() for f in formats) or described
+        raise ROSConfigError(
+            f"sensor '{self.sensor_id}': the pipeline delivers format {named} ({described[:160]}); the reader "
+            f"takes {', '.join(SUPPORTED_FORMATS)}",
+            hint=_CONVERT_HINT,
+        )
+
+    def _on_bus_message(self, _bus: Any, message: Any) -> Any:
+        """Bus sync handler (posting thread): latch errors, note EOS; every message is dropped here."""
+        kind = message.type
+        if kind == Gst.MessageType.ERROR:
+            error, debug = message.parse_error()
+            source = message.src.get_name() if message.src is not None else "pipeline"
+            text = f"sensor '{self.sensor_id}': GStreamer element '{source}' failed: {error.message}"
+            if debug:
+                text += f" [{' '.join(debug.split())}]"
+            if debug and "not-negotiated" in debug:
+                text += f" (the appsink takes {', '.join(SUPPORTED_FORMATS)}: {_CONVERT_HINT})"
+            self._latch(ROSRuntimeError(text))
+        elif kind == Gst.MessageType.EOS:
+            self._eos = True
+            _log.info("gstreamer sensor reached end of stream", sensor_id=self.sensor_id)
+        elif kind == Gst.MessageType.WARNING:
+            warning, debug = message.parse_warning()
+            _log.warning("gstreamer warning", sensor_id=self.sensor_id, message=warning.message, debug=debug)
+        return Gst.BusSyncReply.DROP
+
+    def _latch(self, error: ROSRuntimeError) -> None:
+        if self._bus_error is None:
+            self._bus_error = error
+        self._slot.fail(error)
+
+    def _on_new_sample(self, sink: Any) -> Any:
+        """``new-sample`` handler (streaming thread): one copy out of the buffer, publish."""
+        arrival_ns = time.monotonic_ns()
+        try:
+            sample = sink.pull_sample()
+            if sample is None:  # flushing or EOS
+                return Gst.FlowReturn.OK
+            frame = self._frame_from_sample(sample, sink, arrival_ns)
+        except ROSError as exc:
+            self._latch(exc if isinstance(exc, ROSRuntimeError) else ROSRuntimeError(str(exc)))
+            return Gst.FlowReturn.ERROR
+        except Exception as exc:
+            self._latch(ROSRuntimeError(f"sensor '{self.sensor_id}': could not read a GStreamer sample: {exc}"))
+            return Gst.FlowReturn.ERROR
+        self._slot.publish(frame)
+        return Gst.FlowReturn.OK
+
+    def _frame_from_sample(self, sample: Any, sink: Any, arrival_ns: int) -> SensorFrame:
+        caps = sample.get_caps()
+        layout = self._layout
+        if layout is None or not caps.is_equal(layout.caps):
+            layout = self._layout = self._layout_for(caps)
+        buffer = sample.get_buffer()
+        strides, offset = layout.strides, layout.offset
+        meta = GstVideo.buffer_get_video_meta(buffer)
+        if meta is not None:  # the producer's own plane layout wins over the caps' default one
+            strides, offset = (int(meta.stride[0]), *layout.strides[1:]), int(meta.offset[0])
+        ok, mapped = buffer.map(Gst.MapFlags.READ)
+        if not ok:
+            raise ROSRuntimeError(f"sensor '{self.sensor_id}': could not map a GStreamer buffer")
+        try:
+            data = mapped.data  # the capture copy: bytes owned by Python
+        finally:
+            buffer.unmap(mapped)
+        pixels = np.ndarray(layout.shape, np.uint8, buffer=data, offset=offset, strides=strides)
+        seq = self._seq
+        self._seq += 1
+        return frame_from_array(
+            self.sensor_id,
+            pixels,
+            stamp_ns=self._capture_stamp(sample, buffer, sink, arrival_ns),
+            seq=seq,
+            encoding=layout.encoding,
+            frame_id=self.frame_id,
+        )
+
+    def _layout_for(self, caps: Any) -> _Layout:
+        info = GstVideo.VideoInfo.new_from_caps(caps)
+        if info is None:
+            raise ROSRuntimeError(f"sensor '{self.sensor_id}': the appsink got non-video caps {caps.to_string()}")
+        encoding = _ENCODINGS.get(info.finfo.format)
+        if encoding is None:
+            raise ROSRuntimeError(
+                f"sensor '{self.sensor_id}': the pipeline delivers format {info.finfo.name}; the reader takes "
+                f"{', '.join(SUPPORTED_FORMATS)} ({_CONVERT_HINT})"
+            )
+        width, height = int(info.width), int(info.height)
+        if (self.width is not None and width != self.width) or (self.height is not None and height != self.height):
+            raise ROSRuntimeError(
+                f"sensor '{self.sensor_id}': the pipeline delivers {width}x{height}, the sensor declares "
+                f"{self.width}x{self.height}"
+            )
+        stride = int(info.stride[0])
+        if encoding is FrameEncoding.MONO8:
+            return _Layout(caps, encoding, (height, width), (stride, 1), int(info.offset[0]))
+        return _Layout(caps, encoding, (height, width, 3), (stride, 3, 1), int(info.offset[0]))
+
+    def _capture_stamp(self, sample: Any, buffer: Any, sink: Any, arrival_ns: int) -> int:
+        """``base_time + running_time(PTS)`` on the monotonic pipeline clock, at most the arrival time."""
+        pts = buffer.pts
+        if pts == Gst.CLOCK_TIME_NONE:
+            return arrival_ns
+        running = sample.get_segment().to_running_time(Gst.Format.TIME, pts)
+        if running == Gst.CLOCK_TIME_NONE:
+            return arrival_ns
+        return min(int(sink.get_base_time()) + int(running), arrival_ns)
+
+
+def _has_element(name: str) -> bool:
+    """Whether this process's GStreamer registry has ``name`` (no subprocess)."""
+    return Gst.ElementFactory.find(name) is not None
+
+
+def _parse_error(sensor_id: str, pipeline: str, exc: Any) -> ROSConfigError:
+    missing = _MISSING_ELEMENT.search(str(exc.message))
+    hint = None
+    if missing:
+        element = missing.group(1)
+        hint = next(
+            (text for prefix, text in _PACKAGE_HINTS if element.startswith(prefix)),
+            f"install the GStreamer plugin that provides '{element}' (check with gst-inspect-1.0 {element})",
+        )
+    return ROSConfigError(f"sensor '{sensor_id}': cannot parse pipeline '{pipeline}': {exc.message}", hint=hint)
+
+
+__all__ = ["SUPPORTED_FORMATS", "GStreamerSensorReader"]
