@@ -8,7 +8,20 @@ import sys
 
 import pytest
 
-HEAVY = ["mujoco", "cv2", "gi", "torch", "onnxruntime", "opentelemetry.sdk", "av", "pyarrow", "rclpy", "zenoh"]
+HEAVY = [
+    "mujoco",
+    "cv2",
+    "gi",
+    "torch",
+    "onnxruntime",
+    "opentelemetry.sdk",
+    "av",
+    "pyarrow",
+    "rclpy",
+    "zenoh",
+    "foxglove",
+    "mcap",
+]
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,450 @@
+"""``FoxgloveSink``: every tick to a live Foxglove WebSocket and/or an MCAP file, off the tick thread.
+
+Channels (one schema each; JSON messages carry a JSON Schema, so Foxglove plots any field):
+
+- ``/openral/tick`` (JSON ``openral.Tick``): one message per tick with the phase timings
+  (``tick_ms``, ``sensors_ms``, ``world_state_ms``, ``inference_ms``, ``safety_ms``, ``hal_ms``),
+  ``lateness_ms``, ``deadline_missed``, ``action_applied``, ``withheld_reason``,
+  ``requested_action`` / ``sent_action``, ``stale_sensors``, ``safety_violations``, and the
+  sink's own ``dropped`` count.
+- ``/joint_states`` (JSON ``openral.JointState``): one message per tick that saw a joint state,
+  with ``name``, ``position``, ``velocity``, ``effort`` (ROS ``sensor_msgs/JointState`` field names).
+- ``/openral/safety`` (JSON ``openral.SafetyEvent``): one message per safety violation
+  (``kind="safety_violation"``) and one per withheld action (``kind="action_withheld"``), with
+  ``reason``.
+- ``/camera/<sensor_id>/compressed`` (``foxglove.CompressedImage``): JPEG of each camera, at most
+  ``image_hz`` per camera by capture time (downscaled with :func:`encode_thumbnail`; frames that
+  are already JPEG or PNG pass through as they are).
+
+Times: a message's log time is the wall-clock time at which its tick was handed to the sink,
+taken as ``time.monotonic_ns()`` plus one offset to ``time.time_ns()`` sampled when the sink is
+built. Every stamp therefore keeps exact monotonic intervals (no NTP steps inside a recording).
+``timestamp`` fields inside messages are the tick's hand-over time for ticks and safety events,
+and the measurement's own monotonic stamp (joint-state read, frame capture) mapped with the same
+offset for joint states and images.
+
+The tick thread only appends a reference to a bounded queue (the oldest entry is dropped and
+counted when it is full) and, for a camera whose next image is due, puts the frame in that
+camera's latest-frame slot; a worker thread wakes every ``flush_interval_s`` and serialises,
+encodes and logs what accumulated.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from openral_core import (
+    FrameEncoding,
+    JointState,
+    ROSConfigError,
+    ROSDependencyMissing,
+    SensorFrame,
+    TickResult,
+    WorldState,
+)
+from openral_runner.thumbnails import encode_thumbnail
+
+try:
+    import foxglove
+    from foxglove.channels import CompressedImageChannel
+    from foxglove.mcap import MCAPWriter
+    from foxglove.messages import CompressedImage, Timestamp
+    from foxglove.websocket import WebSocketServer
+except ImportError as exc:  # pragma: no cover - exercised with the extra missing
+    raise ROSDependencyMissing(
+        "foxglove", extra="foxglove", needed_for="Foxglove live view and MCAP recording"
+    ) from exc
+
+_log = structlog.get_logger(__name__)
+
+TOPIC_TICK = "/openral/tick"
+TOPIC_JOINT_STATES = "/joint_states"
+TOPIC_SAFETY = "/openral/safety"
+TOPIC_CAMERA = "/camera/{sensor_id}/compressed"
+
+SAFETY_KIND_VIOLATION = "safety_violation"
+SAFETY_KIND_WITHHELD = "action_withheld"
+
+DEFAULT_PORT = 8765
+"""Foxglove's usual WebSocket port: what ``--foxglove`` without a value serves on."""
+
+_TIME: dict[str, Any] = {
+    "type": "object",
+    "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
+}
+_NUMBERS: dict[str, Any] = {"type": ["array", "null"], "items": {"type": ["number", "null"]}}
+_STRINGS: dict[str, Any] = {"type": "array", "items": {"type": "string"}}
+
+TICK_SCHEMA: dict[str, Any] = {
+    "title": "openral.Tick",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "tick_idx": {"type": "integer"},
+        "tick_ms": {"type": "number"},
+        "sensors_ms": {"type": "number"},
+        "world_state_ms": {"type": "number"},
+        "inference_ms": {"type": "number"},
+        "safety_ms": {"type": "number"},
+        "hal_ms": {"type": "number"},
+        "lateness_ms": {"type": "number"},
+        "deadline_missed": {"type": "boolean"},
+        "action_applied": {"type": "boolean"},
+        "withheld_reason": {"type": ["string", "null"]},
+        "requested_action": _NUMBERS,
+        "sent_action": _NUMBERS,
+        "stale_sensors": _STRINGS,
+        "safety_violations": _STRINGS,
+        "dropped": {"type": "integer", "description": "ticks this sink dropped so far (queue full)"},
+    },
+}
+JOINT_STATE_SCHEMA: dict[str, Any] = {
+    "title": "openral.JointState",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "tick_idx": {"type": "integer"},
+        "name": _STRINGS,
+        "position": _NUMBERS,
+        "velocity": _NUMBERS,
+        "effort": _NUMBERS,
+    },
+}
+SAFETY_SCHEMA: dict[str, Any] = {
+    "title": "openral.SafetyEvent",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "tick_idx": {"type": "integer"},
+        "kind": {"type": "string", "enum": [SAFETY_KIND_VIOLATION, SAFETY_KIND_WITHHELD]},
+        "reason": {"type": "string"},
+        "action_applied": {"type": "boolean"},
+        "requested_action": _NUMBERS,
+        "sent_action": _NUMBERS,
+    },
+}
+
+_PASS_THROUGH = {FrameEncoding.JPEG: "jpeg", FrameEncoding.PNG: "png"}
+
+_Item = tuple[TickResult, JointState | None, int]
+
+
+class FoxgloveSink:
+    """A tick observer that serves a live Foxglove WebSocket and/or records an MCAP file.
+
+    Args:
+        port: Serve a Foxglove WebSocket on this port (0 picks a free one; see :attr:`port`).
+            ``None`` serves nothing.
+        host: Interface the server binds to.
+        mcap_path: Record the same channels to this MCAP file. ``None`` records nothing.
+        image_hz: Camera images per second per camera (by capture time); 0 disables images.
+        queue_size: Ticks buffered for the worker; when full the oldest is dropped and counted.
+        flush_interval_s: How often the worker wakes to publish what was handed over (the live
+            view's added latency). The tick thread wakes it early only when the queue is half
+            full: waking a sleeping thread costs the tick thread tens of µs, appending costs ~1 µs.
+        overwrite: Replace an existing MCAP file instead of refusing.
+        close_timeout_s: How long :meth:`close` waits for the worker to drain.
+
+    Raises:
+        ROSConfigError: Neither ``port`` nor ``mcap_path`` was given, the MCAP file cannot be
+            created (exists, missing folder, no permission), or the port cannot be bound.
+    """
+
+    def __init__(
+        self,
+        *,
+        port: int | None = None,
+        host: str = "127.0.0.1",
+        mcap_path: Path | None = None,
+        image_hz: float = 10.0,
+        queue_size: int = 256,
+        flush_interval_s: float = 0.02,
+        overwrite: bool = False,
+        close_timeout_s: float = 5.0,
+    ) -> None:
+        if port is None and mcap_path is None:
+            raise ROSConfigError(
+                "the Foxglove sink needs somewhere to send ticks", hint="give a port (--foxglove) or a file (--mcap)"
+            )
+        if queue_size < 1:
+            raise ROSConfigError(f"queue_size must be at least 1, got {queue_size}", field="queue_size")
+        self.image_hz = image_hz
+        self._image_period_ns = int(1e9 / image_hz) if image_hz > 0 else 0
+        self._close_timeout_s = close_timeout_s
+        self._flush_interval_s = flush_interval_s
+        self._wake_at = max(1, queue_size // 2)
+        self._offset_ns = time.time_ns() - time.monotonic_ns()
+        self._context = foxglove.Context()
+        self._server: WebSocketServer | None = None
+        self._writer: MCAPWriter | None = None
+        self.mcap_path = mcap_path
+
+        with ExitStack() as stack:
+            if mcap_path is not None:
+                try:
+                    writer = foxglove.open_mcap(mcap_path, allow_overwrite=overwrite, context=self._context)
+                except OSError as exc:
+                    raise ROSConfigError(
+                        f"cannot create MCAP file {mcap_path}: {exc}",
+                        hint="choose a new file in an existing, writable folder",
+                    ) from exc
+                stack.callback(writer.close)
+                self._writer = writer
+            if port is not None:
+                try:
+                    server = foxglove.start_server(name="openral", host=host, port=port, context=self._context)
+                except RuntimeError as exc:
+                    raise ROSConfigError(
+                        f"cannot serve Foxglove on {host}:{port}: {exc}", hint="choose another port: --foxglove PORT"
+                    ) from exc
+                stack.callback(server.stop)
+                self._server = server
+            self._tick_channel = foxglove.Channel(TOPIC_TICK, schema=TICK_SCHEMA, context=self._context)
+            self._joint_channel = foxglove.Channel(TOPIC_JOINT_STATES, schema=JOINT_STATE_SCHEMA, context=self._context)
+            self._safety_channel = foxglove.Channel(TOPIC_SAFETY, schema=SAFETY_SCHEMA, context=self._context)
+            self._camera_channels: dict[str, CompressedImageChannel] = {}
+
+            self._cond = threading.Condition()
+            self._ticks: deque[_Item] = deque(maxlen=queue_size)
+            self._images: dict[str, tuple[SensorFrame, int]] = {}
+            self._image_due: dict[str, int] = {}
+            self._closed = False
+            self.dropped = 0
+            self.images_replaced = 0
+            self.ticks_published = 0
+            self.images_published = 0
+            self.publish_errors = 0
+            self._thread = threading.Thread(target=self._run, name="openral-foxglove", daemon=True)
+            self._thread.start()
+            stack.pop_all()
+
+    # -- what the CLI reads ---------------------------------------------------------------
+
+    @property
+    def port(self) -> int | None:
+        """The port the live server listens on (the real one when 0 was asked), ``None`` without a server."""
+        return None if self._server is None else self._server.port
+
+    @property
+    def app_url(self) -> str | None:
+        """A Foxglove app link that opens this live server, ``None`` without a server."""
+        return None if self._server is None else self._server.app_url()
+
+    # -- TickObserver ---------------------------------------------------------------------
+
+    def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
+        """Hand one tick over to the worker (tick thread; never blocks on I/O, touches no pixels)."""
+        now_ns = time.monotonic_ns()
+        joints = None
+        frames = None
+        if world is not None:
+            joints = world.joint_state
+            frames = world.image_frames
+        with self._cond:
+            if self._closed:
+                return
+            if len(self._ticks) == self._ticks.maxlen:
+                self.dropped += 1
+            self._ticks.append((tick, joints, now_ns))
+            if frames and self._image_period_ns:
+                self._offer_images(frames, now_ns)
+            if len(self._ticks) == self._wake_at:
+                self._cond.notify()
+
+    def close(self) -> None:
+        """Drain what was handed over, finish the MCAP file and stop the server. Idempotent."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            self._cond.notify_all()
+        self._thread.join(self._close_timeout_s)
+        if self._thread.is_alive():
+            _log.warning("foxglove sink did not drain in time; closing anyway", timeout_s=self._close_timeout_s)
+        with ExitStack() as stack:
+            # Unwinds in reverse: channels, then the server, then the MCAP writer.
+            if self._writer is not None:
+                stack.callback(self._writer.close)
+            if self._server is not None:
+                stack.callback(self._server.stop)
+            for channel in (self._tick_channel, self._joint_channel, self._safety_channel):
+                stack.callback(channel.close)
+            for camera in list(self._camera_channels.values()):
+                stack.callback(camera.close)
+        if self.dropped or self.publish_errors:
+            _log.warning("foxglove sink lost ticks", dropped=self.dropped, publish_errors=self.publish_errors)
+
+    def __enter__(self) -> FoxgloveSink:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # -- tick thread helpers ----------------------------------------------------------------
+
+    def _offer_images(self, frames: dict[str, SensorFrame], now_ns: int) -> None:
+        """Put each camera's frame in its slot when its next image is due by capture time (lock held)."""
+        period = self._image_period_ns
+        for sensor_id, frame in frames.items():
+            stamp = frame.stamp_ns
+            due = self._image_due.get(sensor_id)
+            if due is not None and stamp < due:
+                continue
+            # Keep phase while frames arrive on time; after a gap restart from this frame: no burst.
+            if due is None or stamp - due >= period // 2:
+                self._image_due[sensor_id] = stamp + period
+            else:
+                self._image_due[sensor_id] = due + period
+            if sensor_id in self._images:
+                self.images_replaced += 1
+            self._images[sensor_id] = (frame, now_ns)
+
+    # -- worker -------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if not self._closed:
+                    self._cond.wait(self._flush_interval_s)
+                ticks = list(self._ticks)
+                self._ticks.clear()
+                images, self._images = self._images, {}
+                if self._closed and not ticks and not images:
+                    return
+            for item in ticks:
+                self._guarded(self._publish_tick, item)
+            for frame, handed_ns in images.values():
+                self._guarded(self._publish_image, frame, handed_ns)
+
+    def _guarded(self, publish: Callable[..., None], *args: Any) -> None:
+        try:
+            publish(*args)
+        except Exception as exc:  # the worker must outlive one bad message
+            self.publish_errors += 1
+            if self.publish_errors == 1:
+                _log.error("foxglove sink failed to publish; counting further failures", error=repr(exc))
+
+    def _publish_tick(self, item: _Item) -> None:
+        tick, joints, handed_ns = item
+        log_time = handed_ns + self._offset_ns
+        stamp = _stamp(log_time)
+        self._tick_channel.log(
+            _dumps(
+                {
+                    "timestamp": stamp,
+                    "tick_idx": tick.tick_idx,
+                    "tick_ms": tick.tick_ms,
+                    "sensors_ms": tick.sensors_ms,
+                    "world_state_ms": tick.world_state_ms,
+                    "inference_ms": tick.inference_ms,
+                    "safety_ms": tick.safety_ms,
+                    "hal_ms": tick.hal_ms,
+                    "lateness_ms": tick.lateness_ms,
+                    "deadline_missed": tick.deadline_missed,
+                    "action_applied": tick.action_applied,
+                    "withheld_reason": tick.withheld_reason,
+                    "requested_action": tick.requested_action,
+                    "sent_action": tick.sent_action,
+                    "stale_sensors": tick.stale_sensors,
+                    "safety_violations": tick.safety_violations,
+                    "dropped": self.dropped,
+                }
+            ),
+            log_time=log_time,
+        )
+        if joints is not None:
+            measured = joints.stamp_ns + self._offset_ns if joints.stamp_ns else log_time
+            self._joint_channel.log(
+                _dumps(
+                    {
+                        "timestamp": _stamp(measured),
+                        "tick_idx": tick.tick_idx,
+                        "name": joints.names,
+                        "position": joints.positions,
+                        "velocity": joints.velocities,
+                        "effort": joints.efforts,
+                    }
+                ),
+                log_time=log_time,
+            )
+        events = [(SAFETY_KIND_VIOLATION, reason) for reason in tick.safety_violations]
+        if tick.withheld_reason is not None:
+            events.append((SAFETY_KIND_WITHHELD, tick.withheld_reason))
+        for kind, reason in events:
+            self._safety_channel.log(
+                _dumps(
+                    {
+                        "timestamp": stamp,
+                        "tick_idx": tick.tick_idx,
+                        "kind": kind,
+                        "reason": reason,
+                        "action_applied": tick.action_applied,
+                        "requested_action": tick.requested_action,
+                        "sent_action": tick.sent_action,
+                    }
+                ),
+                log_time=log_time,
+            )
+        self.ticks_published += 1
+
+    def _publish_image(self, frame: SensorFrame, handed_ns: int) -> None:
+        fmt = _PASS_THROUGH.get(frame.encoding)
+        if fmt is not None and frame.data is not None:
+            data = frame.data_bytes()
+        else:
+            thumb = encode_thumbnail(frame)
+            if thumb is None:
+                return
+            data, fmt = thumb.jpeg, "jpeg"
+        channel = self._camera_channels.get(frame.sensor_id)
+        if channel is None:
+            topic = TOPIC_CAMERA.format(sensor_id=frame.sensor_id)
+            channel = self._camera_channels[frame.sensor_id] = CompressedImageChannel(topic, context=self._context)
+        channel.log(
+            CompressedImage(
+                timestamp=_timestamp(frame.stamp_ns + self._offset_ns),
+                frame_id=frame.frame_id or frame.sensor_id,
+                data=data,
+                format=fmt,
+            ),
+            log_time=handed_ns + self._offset_ns,
+        )
+        self.images_published += 1
+
+
+def _stamp(wall_ns: int) -> dict[str, int]:
+    sec, nsec = divmod(wall_ns, 1_000_000_000)
+    return {"sec": sec, "nsec": nsec}
+
+
+def _timestamp(wall_ns: int) -> Timestamp:
+    sec, nsec = divmod(wall_ns, 1_000_000_000)
+    return Timestamp(sec, nsec)
+
+
+def _dumps(message: dict[str, Any]) -> bytes:
+    """Compact JSON; NaN and infinities (not JSON) become ``null``."""
+    try:
+        return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+    except ValueError:
+        return json.dumps(_finite(message), allow_nan=False, separators=(",", ":")).encode()
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(item) for item in value]
+    return value

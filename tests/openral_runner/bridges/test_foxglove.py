@@ -1,0 +1,312 @@
+"""Foxglove sink: MCAP channels with one message per tick, a live WebSocket, a tick thread that never blocks."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from openral_core import (
+    FrameEncoding,
+    JointState,
+    ROSConfigError,
+    ROSDependencyMissing,
+    SensorReaderConfig,
+    TickResult,
+    WorldState,
+)
+from openral_hal.testing import RecordingHAL
+from openral_rskill.testing import ScriptedSkill
+from openral_runner.frame_slot import frame_from_array
+from openral_runner.hardware import HardwareRunner
+from openral_runner.testing import FakeClock, ScriptedReader
+from openral_world_state import WorldStateAggregator
+
+EXTRA = "needs the 'foxglove' extra (foxglove-sdk, mcap): uv sync --extra foxglove"
+
+NAMES = ["shoulder_pan", "shoulder_lift", "gripper"]
+STEP_NS = 10_000_000  # 100 Hz ticks
+
+
+def make_tick(i: int, **overrides) -> TickResult:
+    fields = {
+        "tick_idx": i,
+        "tick_ms": 1.0 + i / 100,
+        "sensors_ms": 0.1,
+        "world_state_ms": 0.2,
+        "inference_ms": 0.5 + i / 1000,
+        "safety_ms": 0.05,
+        "hal_ms": 0.15,
+        "action_applied": True,
+        "requested_action": [0.1 * i, 0.0, 0.5],
+        "sent_action": [0.1 * i, 0.0, 0.5],
+    }
+    return TickResult(**(fields | overrides))
+
+
+def make_world(i: int, *, with_frame: bool = True) -> WorldState:
+    stamp = 1_000_000_000 + i * STEP_NS
+    joints = JointState(names=NAMES, positions=[0.01 * i, -0.02 * i, 0.5], velocities=[1.0, -2.0, 0.0], stamp_ns=stamp)
+    frames = None
+    if with_frame:
+        pixels = np.zeros((48, 64, 3), np.uint8)
+        pixels[:, :, 2] = 200
+        frames = {"wrist": frame_from_array("wrist", pixels, stamp_ns=stamp, seq=i, encoding=FrameEncoding.BGR8)}
+    return WorldState(stamp_ns=stamp, joint_state=joints, image_frames=frames)
+
+
+@pytest.fixture
+def sink_cls() -> type:
+    """``FoxgloveSink``, imported only here: the first two tests run without the extra."""
+    pytest.importorskip("foxglove", reason=EXTRA)
+    return importlib.import_module("openral_runner.bridges.foxglove").FoxgloveSink
+
+
+@pytest.fixture
+def read_mcap():
+    """Read an MCAP file into ``{topic: [(schema, channel, message), ...]}`` with the official reader."""
+    reader = pytest.importorskip("mcap.reader", reason=EXTRA)
+
+    def read(path: Path) -> dict[str, list]:
+        with path.open("rb") as f:
+            mcap = reader.make_reader(f)
+            summary = mcap.get_summary()
+            assert summary is not None, "MCAP file has no summary: the writer was not closed"
+            messages: dict[str, list] = {channel.topic: [] for channel in summary.channels.values()}
+            for schema, channel, message in mcap.iter_messages():
+                messages[channel.topic].append((schema, channel, message))
+        return messages
+
+    return read
+
+
+def test_importing_observability_loads_no_foxglove() -> None:
+    code = "import sys, openral_observability; print(sorted(m for m in ('foxglove', 'mcap') if m in sys.modules))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert proc.stdout.strip() == "[]"
+
+
+def test_missing_foxglove_names_the_extra() -> None:
+    code = (
+        "import sys\n"
+        "sys.modules['foxglove'] = None\n"
+        "from openral_core import ROSDependencyMissing\n"
+        "try:\n"
+        "    import openral_runner.bridges.foxglove\n"
+        "except ROSDependencyMissing as exc:\n"
+        "    print(exc.extra, '|', exc)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    extra, message = proc.stdout.strip().split(" | ")
+    assert extra == "foxglove"
+    assert "Foxglove live view and MCAP recording" in message
+    assert "uv sync --extra foxglove" in message
+    assert issubclass(ROSDependencyMissing, ROSConfigError)
+
+
+def test_mcap_has_one_joint_state_and_one_timing_message_per_tick(tmp_path: Path, sink_cls, read_mcap) -> None:
+    path = tmp_path / "run.mcap"
+    n = 20
+    sink = sink_cls(mcap_path=path, image_hz=10.0)
+    before_ns = time.time_ns()
+    for i in range(n):
+        extra = {}
+        if i == 5:
+            extra = {"safety_violations": ["joint 'gripper' clamped"], "sent_action": [0.5, 0.0, 0.4]}
+        if i == 7:
+            extra = {"action_applied": False, "withheld_reason": "deadline", "deadline_missed": True}
+        sink.on_tick(make_tick(i, **extra), make_world(i))
+    sink.on_tick(make_tick(n), None)  # a tick without a world: timings only
+    sink.close()
+    sink.close()  # idempotent
+    after_ns = time.time_ns()
+    assert sink.dropped == 0
+    assert sink.publish_errors == 0
+
+    messages = read_mcap(path)
+    assert set(messages) == {"/joint_states", "/openral/tick", "/openral/safety", "/camera/wrist/compressed"}
+
+    ticks = [json.loads(m.data) for _, _, m in messages["/openral/tick"]]
+    assert [t["tick_idx"] for t in ticks] == list(range(n + 1))
+    assert [t["tick_ms"] for t in ticks] == [make_tick(i).tick_ms for i in range(n + 1)]
+    assert ticks[7]["withheld_reason"] == "deadline"
+    assert ticks[7]["action_applied"] is False
+    schema, channel, _ = messages["/openral/tick"][0]
+    assert channel.message_encoding == "json"
+    assert schema.name == "openral.Tick"
+
+    joints = [json.loads(m.data) for _, _, m in messages["/joint_states"]]
+    assert len(joints) == n  # one per tick that saw a joint state
+    for i, msg in enumerate(joints):
+        assert msg["tick_idx"] == i
+        assert msg["name"] == NAMES
+        assert msg["position"] == pytest.approx([0.01 * i, -0.02 * i, 0.5])
+        assert msg["velocity"] == [1.0, -2.0, 0.0]
+
+    safety = [json.loads(m.data) for _, _, m in messages["/openral/safety"]]
+    assert [(e["tick_idx"], e["kind"], e["reason"]) for e in safety] == [
+        (5, "safety_violation", "joint 'gripper' clamped"),
+        (7, "action_withheld", "deadline"),
+    ]
+
+    # Log times are wall-clock nanoseconds, one per tick, non-decreasing; joint stamps keep monotonic spacing.
+    log_times = [m.log_time for _, _, m in messages["/openral/tick"]]
+    assert before_ns - 1_000_000_000 <= log_times[0] <= log_times[-1] <= after_ns + 1_000_000_000
+    assert log_times == sorted(log_times)
+    joint_ns = [msg["timestamp"]["sec"] * 1_000_000_000 + msg["timestamp"]["nsec"] for msg in joints]
+    assert np.diff(joint_ns).tolist() == [STEP_NS] * (n - 1)
+
+    # 20 frames 10 ms apart at 10 Hz: two images are due (capture t=0 and t=100 ms).
+    images = messages["/camera/wrist/compressed"]
+    assert sink.images_published + sink.images_replaced == 2
+    assert len(images) == sink.images_published >= 1
+    schema, _, message = images[0]
+    assert schema.name == "foxglove.CompressedImage"
+    assert b"jpeg" in message.data
+    assert b"\xff\xd8\xff" in message.data  # the JPEG itself rides in the protobuf bytes field
+
+
+def test_non_finite_actions_become_null(tmp_path: Path, sink_cls, read_mcap) -> None:
+    path = tmp_path / "nan.mcap"
+    with sink_cls(mcap_path=path) as sink:
+        tick = make_tick(0, requested_action=[float("nan"), float("inf"), 0.5], safety_violations=["NaN in action"])
+        sink.on_tick(tick, None)
+    payloads = {topic: json.loads(entries[0][2].data) for topic, entries in read_mcap(path).items() if entries}
+    assert payloads["/openral/tick"]["requested_action"] == [None, None, 0.5]
+    assert payloads["/openral/safety"]["reason"] == "NaN in action"
+
+
+def test_on_tick_never_blocks_when_the_worker_is_stalled(tmp_path: Path, sink_cls) -> None:
+    sink = sink_cls(mcap_path=tmp_path / "stall.mcap", queue_size=16, close_timeout_s=5.0)
+    entered = threading.Event()
+    release = threading.Event()
+    real_publish = sink._publish_tick
+
+    def stalled(item) -> None:
+        entered.set()
+        release.wait(10)
+        real_publish(item)
+
+    sink._publish_tick = stalled
+    world = make_world(0)
+    sink.on_tick(make_tick(0), world)
+    assert entered.wait(5), "worker never picked up the first tick"
+
+    n = 2000
+    worst = 0.0
+    t_start = time.perf_counter()
+    for i in range(1, n + 1):
+        t0 = time.perf_counter()
+        sink.on_tick(make_tick(i), world)
+        worst = max(worst, time.perf_counter() - t0)
+    total = time.perf_counter() - t_start
+    assert sink.dropped == n - 16  # the worker holds tick 0; the queue keeps the newest 16
+    assert worst < 0.05, f"on_tick blocked for {worst * 1e3:.1f} ms"
+    assert total / n < 0.001
+    release.set()
+    sink.close()
+    assert sink.ticks_published == 1 + 16
+
+
+def test_needs_a_port_or_a_file_and_refuses_an_existing_file(tmp_path: Path, sink_cls) -> None:
+    with pytest.raises(ROSConfigError, match="--foxglove"):
+        sink_cls()
+    existing = tmp_path / "taken.mcap"
+    existing.write_bytes(b"x")
+    with pytest.raises(ROSConfigError, match="cannot create MCAP file"):
+        sink_cls(mcap_path=existing)
+    assert existing.read_bytes() == b"x"
+
+
+def test_live_server_streams_ticks_to_a_websocket_client(sink_cls) -> None:
+    connect = pytest.importorskip("websockets.sync.client", reason="needs the websockets client (dev group)").connect
+
+    with sink_cls(port=0, host="127.0.0.1") as sink:
+        assert sink.port
+        assert sink.port > 0
+        assert sink.app_url is not None
+        # The SDK server speaks the Foxglove WebSocket protocol under the name foxglove.sdk.v1
+        # (same messages as foxglove.websocket.v1); offer both, as the Foxglove app does.
+        with connect(
+            f"ws://127.0.0.1:{sink.port}",
+            subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+            open_timeout=5,
+            proxy=None,
+        ) as ws:
+            channels: dict[str, int] = {}
+            deadline = time.monotonic() + 5
+            while "/openral/tick" not in channels or "/joint_states" not in channels:
+                assert time.monotonic() < deadline, f"channels not advertised, got {sorted(channels)}"
+                frame = ws.recv(timeout=5)
+                if isinstance(frame, str):
+                    msg = json.loads(frame)
+                    if msg["op"] == "advertise":
+                        channels.update({c["topic"]: c["id"] for c in msg["channels"]})
+            subscriptions = {1: "/openral/tick", 2: "/joint_states"}
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "subscribe",
+                        "subscriptions": [{"id": sid, "channelId": channels[t]} for sid, t in subscriptions.items()],
+                    }
+                )
+            )
+            received: dict[str, dict] = {}
+            i = 0
+            deadline = time.monotonic() + 10
+            while len(received) < 2:
+                assert time.monotonic() < deadline, f"no message data received, got {sorted(received)}"
+                sink.on_tick(make_tick(i), make_world(i, with_frame=False))
+                i += 1
+                try:
+                    frame = ws.recv(timeout=0.05)
+                except TimeoutError:
+                    continue
+                if isinstance(frame, bytes) and frame[0] == 0x01:  # Message Data
+                    sub_id, log_time = struct.unpack_from("<IQ", frame, 1)
+                    received[subscriptions[sub_id]] = json.loads(frame[13:])
+                    assert abs(log_time - time.time_ns()) < 5_000_000_000
+            assert "tick_ms" in received["/openral/tick"]
+            assert received["/joint_states"]["name"] == NAMES
+
+
+def test_a_runner_observer_records_every_tick_and_closes_at_deactivate(tmp_path: Path, sink_cls, read_mcap) -> None:
+    clock = FakeClock()
+    joints = ["j0", "j1", "j2"]
+    skill = ScriptedSkill(joints, on_step=lambda _i: clock.advance(0.002))
+    skill.configure()
+    skill.activate()
+    camera = ScriptedReader("front", clock, width=32, height=24)
+    runner = HardwareRunner(
+        hal=RecordingHAL(joints, clock_ns=clock.now_ns),
+        skill=skill,
+        aggregator=WorldStateAggregator(
+            joint_max_age_ms=100.0, sensors=[SensorReaderConfig(sensor_id="front")], clock=clock.now_ns
+        ),
+        sensor_readers=[camera],
+        rate_hz=30.0,
+        clock=clock,
+    )
+    path = tmp_path / "deploy.mcap"
+    sink = sink_cls(mcap_path=path)
+    runner.observers.append(sink)  # before activate: deactivate closes it
+    runner.activate()
+    runner.run(30)
+    runner.deactivate()
+
+    messages = read_mcap(path)  # readable: deactivate finished the file
+    ticks = [json.loads(m.data) for _, _, m in messages["/openral/tick"]]
+    assert [t["tick_idx"] for t in ticks] == list(range(30))
+    assert [t["tick_ms"] for t in ticks][-len(runner.recent_ticks) :] == [t.tick_ms for t in runner.recent_ticks]
+    assert ticks[0]["inference_ms"] == pytest.approx(2.0)
+    assert len(messages["/joint_states"]) == 30
+    assert json.loads(messages["/joint_states"][0][2].data)["name"] == joints
+    assert messages["/camera/front/compressed"]
