@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable
+from types import TracebackType
+from typing import Self
 
 import numpy as np
 
@@ -197,3 +200,64 @@ def frame_from_array(
         frame_id=frame_id,
         data=pixels,
     )
+
+
+class SlotReader(ABC):
+    """The reading half of the ``SensorReader`` contract for backends that publish into a slot.
+
+    A backend sets ``sensor_id`` and ``_slot`` and implements ``open``/``close``; reading,
+    the context manager and the delivered-rate figures come from here.
+    """
+
+    sensor_id: str
+    _slot: LatestFrameSlot
+
+    @abstractmethod
+    def open(self) -> None:
+        """Acquire the device and start publishing frames into the slot. Idempotent."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Stop capture and release the device. Idempotent."""
+
+    @property
+    def is_open(self) -> bool:
+        """True between ``open()`` and ``close()``."""
+        return self._slot.is_open
+
+    @property
+    def delivered_fps(self) -> float:
+        """Rate of frames actually captured, from capture stamps (0 before two frames)."""
+        return self._slot.delivered_fps
+
+    @property
+    def frames_published(self) -> int:
+        """Frames captured since ``open()``."""
+        return self._slot.frames_published
+
+    def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
+        """The most recent frame, without waiting for a new one.
+
+        Raises:
+            ROSRuntimeError: The reader is closed, or capture failed (latched).
+            ROSPerceptionStale: No frame yet, or the latest is older than the limit.
+        """
+        return self._slot.read_latest(max_age_ms)
+
+    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
+        """A frame captured after ``newer_than_ns``, waiting at most until ``deadline_ns``.
+
+        Raises:
+            ROSRuntimeError: The reader is closed, or capture failed.
+            ROSPerceptionStale: No such frame by the deadline.
+        """
+        return self._slot.read_synced(deadline_ns, newer_than_ns=newer_than_ns)
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()

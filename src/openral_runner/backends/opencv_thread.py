@@ -18,8 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Literal, Self
+from typing import Any, Literal
 
 import numpy as np
 import structlog
@@ -31,11 +30,10 @@ from openral_core import (
     ROSDependencyMissing,
     ROSHardwareError,
     ROSRuntimeError,
-    SensorFrame,
     SensorReaderConfig,
 )
 from openral_core.config import validate_model
-from openral_runner.frame_slot import LatestFrameSlot, frame_from_array
+from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
 
 try:
     import cv2
@@ -95,7 +93,7 @@ class OpenCVThreadParams(BaseModel):
     max_read_failures: int = Field(default=10, ge=1, description="live sources: failed reads in a row before failing")
 
 
-class OpenCVThreadSensorReader:
+class OpenCVThreadSensorReader(SlotReader):
     """Captures one camera or video on a background thread; serves its latest frame.
 
     Args:
@@ -222,11 +220,6 @@ class OpenCVThreadSensorReader:
 
     # -- lifecycle -----------------------------------------------------------------------
 
-    @property
-    def is_open(self) -> bool:
-        """True between ``open()`` and ``close()``."""
-        return self._slot.is_open
-
     def open(self) -> None:
         """Open the source, read one frame to learn its real size, and start the capture thread.
 
@@ -276,39 +269,7 @@ class OpenCVThreadSensorReader:
             if thread.is_alive():
                 _log.warning("opencv capture thread did not stop in time", sensor=self.sensor_id)
 
-    def __enter__(self) -> Self:
-        self.open()
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
     # -- reading -------------------------------------------------------------------------
-
-    def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
-        """The most recent frame, without waiting for a new one.
-
-        Raises:
-            ROSRuntimeError: The reader is closed, or the source failed.
-            ROSPerceptionStale: No frame yet, or the latest is older than the limit.
-        """
-        return self._slot.read_latest(max_age_ms)
-
-    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
-        """Wait for a frame captured after ``newer_than_ns``, at most until ``deadline_ns``.
-
-        Raises:
-            ROSPerceptionStale: No such frame by the deadline.
-            ROSRuntimeError: The reader is closed or failed.
-        """
-        return self._slot.read_synced(deadline_ns, newer_than_ns=newer_than_ns)
-
-    @property
-    def delivered_fps(self) -> float:
-        """Current rate of captured frames, from capture stamps (0 before two frames)."""
-        return self._slot.delivered_fps
 
     def report(self) -> dict[str, Any]:
         """Requested versus delivered: rate, size, frames captured, slots dropped, read failures."""

@@ -34,8 +34,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 import structlog
@@ -58,7 +57,7 @@ from openral_runner.backends.gstreamer.pipeline import (
     detect_platform,
     ensure_appsink_name,
 )
-from openral_runner.frame_slot import LatestFrameSlot, frame_from_array
+from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
 
 try:
     import gi
@@ -110,7 +109,7 @@ class _Layout:
     offset: int
 
 
-class GStreamerSensorReader:
+class GStreamerSensorReader(SlotReader):
     """Runs a GStreamer pipeline and serves the latest frame of its appsink.
 
     Args:
@@ -214,24 +213,9 @@ class GStreamerSensorReader:
     # -- lifecycle -------------------------------------------------------------------------
 
     @property
-    def is_open(self) -> bool:
-        """True between ``open()`` and ``close()``."""
-        return self._slot.is_open
-
-    @property
     def eos(self) -> bool:
         """The pipeline reached end of stream (a file ended); the last frame ages out."""
         return self._eos
-
-    @property
-    def delivered_fps(self) -> float:
-        """Rate of frames actually captured, from capture stamps (0 before two frames)."""
-        return self._slot.delivered_fps
-
-    @property
-    def frames_published(self) -> int:
-        """Frames delivered since ``open()``."""
-        return self._slot.frames_published
 
     def open(self) -> None:
         """Parse the pipeline, attach to its appsink and bus, and set it PLAYING. Idempotent.
@@ -263,37 +247,7 @@ class GStreamerSensorReader:
             self._slot.close()
             self._stop()
 
-    def __enter__(self) -> Self:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
-
     # -- reading ---------------------------------------------------------------------------
-
-    def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
-        """The most recent frame, without waiting.
-
-        Raises:
-            ROSPerceptionStale: No frame yet, or the latest is older than the limit.
-            ROSRuntimeError: The reader is closed, or the pipeline failed (latched bus error).
-        """
-        return self._slot.read_latest(max_age_ms)
-
-    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
-        """Wait for a frame captured after ``newer_than_ns``, at most until ``deadline_ns``.
-
-        Raises:
-            ROSPerceptionStale: No such frame by the deadline.
-            ROSRuntimeError: The reader is closed or failed.
-        """
-        return self._slot.read_synced(deadline_ns, newer_than_ns=newer_than_ns)
 
     # -- pipeline plumbing -----------------------------------------------------------------
 

@@ -14,10 +14,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from openral_core import ROSDependencyMissing, ROSRuntimeError, SensorFrame, SensorReaderConfig
+from openral_core import ROSDependencyMissing, ROSRuntimeError, SensorReaderConfig
 from openral_core.config import validate_model
 from openral_runner.backends.ros2.convert import image_to_frame, ros_stamp_to_monotonic_ns, stamp_to_ns
-from openral_runner.frame_slot import LatestFrameSlot
+from openral_runner.frame_slot import LatestFrameSlot, SlotReader
 
 try:
     import rclpy
@@ -40,7 +40,7 @@ class Ros2ImageParams(BaseModel):
     node_name: str | None = None
 
 
-class Ros2ImageSensorReader:
+class Ros2ImageSensorReader(SlotReader):
     """Subscribes to one image topic; serves the latest message as a frame.
 
     Args:
@@ -87,11 +87,6 @@ class Ros2ImageSensorReader:
             node_name=params.node_name,
         )
 
-    @property
-    def is_open(self) -> bool:
-        """True between ``open()`` and ``close()``."""
-        return self._slot.is_open
-
     def open(self) -> None:
         """Create the node and subscription and start spinning. Idempotent."""
         if self._slot.is_open:
@@ -121,21 +116,6 @@ class Ros2ImageSensorReader:
             self._thread.join(timeout=2.0)
             self._thread = None
         self._teardown()
-
-    def __enter__(self) -> Ros2ImageSensorReader:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
-        """The latest image if fresh enough (see ``LatestFrameSlot.read_latest``)."""
-        return self._slot.read_latest(max_age_ms)
-
-    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
-        """Wait for an image captured after ``newer_than_ns``, at most until ``deadline_ns``."""
-        return self._slot.read_synced(deadline_ns, newer_than_ns=newer_than_ns)
 
     def _spin(self) -> None:
         executor = self._executor
