@@ -114,8 +114,6 @@ class HardwareRunner(InferenceRunnerBase):
         if self._opened is not None:
             super().activate()
             return
-        if self.realtime is not None:
-            self.metadata["realtime"] = apply_realtime(self.realtime)
         with ExitStack() as stack:
             self.hal.connect()
             stack.callback(self._safe_close, "hal", self.hal.disconnect)
@@ -127,6 +125,11 @@ class HardwareRunner(InferenceRunnerBase):
                 stack.callback(self._safe_close, "thumbnails", self.thumbnails.stop)
             for observer in self.observers:
                 stack.callback(self._safe_close, f"observer {type(observer).__name__}", observer.close)
+            if self.realtime is not None:
+                # Last, so the capture and physics threads started above keep ordinary priority.
+                settings = apply_realtime(self.realtime)
+                self.metadata["realtime"] = settings.report
+                stack.callback(settings.restore)
             super().activate()
             self._opened = stack.pop_all()
 
@@ -198,6 +201,7 @@ class HardwareRunner(InferenceRunnerBase):
             stale.extend(r.sensor_id for r in self._synced_readers)
             if self._sync_required:
                 withheld = "stale_sensor"
+        t_read = now()
         span = tr.start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
         try:
             state = self.hal.read_state()
@@ -211,7 +215,7 @@ class HardwareRunner(InferenceRunnerBase):
         finally:
             span.end()
         t1 = now()
-        metrics.record_histogram_ms(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t0) * 1e3, self._hal_attrs)
+        metrics.record_histogram_ms(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t_read) * 1e3, self._hal_attrs)
 
         world = self.aggregator.snapshot(task=self.task)
         self._last_world = world
@@ -274,7 +278,9 @@ class HardwareRunner(InferenceRunnerBase):
                 )
             else:
                 withheld = "deadline"
-                trace.get_current_span().add_event(semconv.EVENT_ACTION_DROPPED, {"reason": "deadline"})
+                trace.get_current_span().add_event(
+                    semconv.EVENT_ACTION_DROPPED, {semconv.ATTR_WITHHELD_REASON: "deadline"}
+                )
         t5 = now()
 
         return TickResult(
@@ -306,7 +312,7 @@ class HardwareRunner(InferenceRunnerBase):
                 clock_ns=self._clock.now_ns,
             )
         except ROSError as exc:
-            attrs: dict[str, Any] = {"reason": str(exc)}
+            attrs: dict[str, Any] = {semconv.ATTR_EXCEPTION_MESSAGE: str(exc)}
             if isinstance(exc, ROSSyncError):
                 attrs[semconv.ATTR_SYNC_SKEW_MS] = exc.skew_ms
             span.add_event(semconv.EVENT_SENSOR_SYNC_FAILED, attrs)
@@ -317,8 +323,12 @@ class HardwareRunner(InferenceRunnerBase):
             stamps = [frame.stamp_ns for frame in frames.values()]
             if span.is_recording():
                 span.set_attribute(semconv.ATTR_SYNC_SKEW_MS, (max(stamps) - min(stamps)) / 1e6)
+            now_ns = self._clock.now_ns()
             for frame in frames.values():
                 self._accept_frame(frame)
+                metrics.record_histogram_ms(
+                    semconv.METRIC_SENSORS_AGE, frame.age_ms(now_ns), {semconv.ATTR_SENSOR_ID: frame.sensor_id}
+                )
             return True
         finally:
             span.end()
@@ -366,14 +376,14 @@ class HardwareRunner(InferenceRunnerBase):
     def _on_violation(self, span: trace.Span, exc: ROSSafetyViolation) -> None:
         attrs = {semconv.ATTR_SAFETY_CHECK_NAME: exc.check_name, semconv.ATTR_SAFETY_SEVERITY: exc.severity}
         span.record_exception(exc)
-        span.add_event(semconv.EVENT_SAFETY_VIOLATION, {**attrs, "message": str(exc)})
+        span.add_event(semconv.EVENT_SAFETY_VIOLATION, {**attrs, semconv.ATTR_EXCEPTION_MESSAGE: str(exc)})
         metrics.add(semconv.METRIC_SAFETY_VIOLATIONS, 1, attrs)
         _log.warning("action rejected by safety", check=exc.check_name, reason=str(exc))
 
     def _estop(self, exc: ROSEStopRequested) -> str:
         """E-stop the robot and stop the loop; returns the withheld reason."""
         span = trace.get_current_span()
-        span.add_event(semconv.EVENT_ESTOP_REQUESTED, {"reason": str(exc)})
+        span.add_event(semconv.EVENT_ESTOP_REQUESTED, {semconv.ATTR_ESTOP_REASON: str(exc)})
         _log.error("e-stop requested", reason=str(exc))
         estop_span = self._tracer.start_span(semconv.SPAN_HAL_ESTOP, attributes=self._hal_attrs)
         try:
