@@ -114,16 +114,29 @@ def main() -> None:
     args = parser.parse_args()
     print(machine_line())
     video = {
-        "sensor_id": "front", "backend": "opencv_thread", "fps": 30, "width": 320, "height": 240,
+        "sensor_id": "front",
+        "backend": "opencv_thread",
+        "fps": 30,
+        "width": 320,
+        "height": 240,
         "backend_params": {"device": "media/demo_320x240.mp4", "loop": True, "paced": True},
     }
     testsrc = {
-        "sensor_id": "front", "backend": "gstreamer", "fps": 30, "width": 320, "height": 240,
+        "sensor_id": "front",
+        "backend": "gstreamer",
+        "fps": 30,
+        "width": 320,
+        "height": 240,
         "backend_params": {"source": "testsrc"},
     }
     twin_cam = {
-        "sensor_id": "front", "backend": "mujoco_camera", "fps": 30, "width": 320, "height": 240,
-        "max_age_ms": 150, "encoding": "rgb8",
+        "sensor_id": "front",
+        "backend": "mujoco_camera",
+        "fps": 30,
+        "width": 320,
+        "height": 240,
+        "max_age_ms": 150,
+        "encoding": "rgb8",
     }
     print(measure_backend("opencv (video file)", _env(video), args.seconds))
     print(measure_backend("gstreamer (testsrc)", _env(testsrc), args.seconds))

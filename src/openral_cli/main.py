@@ -15,26 +15,45 @@ import structlog
 
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, EXIT_RUNTIME, EXIT_SIGINT, EXIT_SIGTERM, exit_codes
 from openral_cli.report import format_run_result
-from openral_cli.status import StatusLine
+from openral_cli.status import LiveStatus
 from openral_core import RobotEnvironment, ROSDeadlineMissed, RunResult
 from openral_core.schema import robot_environment_schema_json
 from openral_observability import semconv, tracer
+from openral_observability.logs import OTelLogBridge, add_trace_ids
+from openral_observability.propagation import context_from_env
+from openral_observability.setup import PROTOCOLS, setup
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.factory import build_runner
 
 _STOP_EXIT_CODES = {"signal:SIGINT": EXIT_SIGINT, "signal:SIGTERM": EXIT_SIGTERM, "faults": EXIT_RUNTIME}
 
 
+class _Stderr:
+    """Whatever ``sys.stderr`` is at the time of each write, so log lines scroll above the live status."""
+
+    def write(self, text: str) -> int:
+        return sys.stderr.write(text)
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+
 def _configure_logging(debug: bool) -> None:
-    """Logs go to stderr so stdout carries only results (``--json``)."""
+    """Logs go to stderr so stdout carries only results (``--json``).
+
+    Each line carries the current trace and span ids when tracing is on, and becomes an
+    OpenTelemetry log record too (a no-op until telemetry is set up).
+    """
     structlog.configure(
         processors=[
             structlog.processors.add_log_level,
             structlog.processors.TimeStamper(fmt="%H:%M:%S"),
+            add_trace_ids,
+            OTelLogBridge(),
             structlog.dev.ConsoleRenderer(colors=sys.stderr.isatty()),
         ],
         wrapper_class=structlog.make_filtering_bound_logger(logging.DEBUG if debug else logging.INFO),
-        logger_factory=structlog.PrintLoggerFactory(file=sys.stderr),
+        logger_factory=structlog.PrintLoggerFactory(file=_Stderr()),  # type: ignore[arg-type]
         cache_logger_on_first_use=True,
     )
 
@@ -59,20 +78,62 @@ def cli(ctx: click.Context, debug: bool) -> None:
 @click.option("--max-ticks", type=click.IntRange(min=0), default=None, help="Stop after this many ticks.")
 @click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None, help="Stop after S seconds.")
 @click.option("--json", "as_json", is_flag=True, help="Print the RunResult as JSON on stdout, nothing else.")
+@click.option(
+    "--otlp-endpoint",
+    metavar="URL",
+    default=None,
+    help="Export traces, metrics and logs over OTLP to this collector (default: OTEL_EXPORTER_OTLP_ENDPOINT).",
+)
+@click.option(
+    "--otlp-protocol",
+    type=click.Choice(PROTOCOLS),
+    default=None,
+    help="OTLP transport (default: OTEL_EXPORTER_OTLP_PROTOCOL, else http/protobuf).",
+)
+@click.option(
+    "--trace-sample-ratio",
+    type=click.FloatRange(0.0, 1.0),
+    default=None,
+    help="Fraction of runs whose ticks are traced (ParentBased(TraceIdRatioBased)); default: all.",
+)
 @click.pass_context
-def deploy(ctx: click.Context, config_path: Path, max_ticks: int | None, duration: float | None, as_json: bool) -> None:
-    """Run a deployment until --max-ticks, --duration, Ctrl-C or a safety stop."""
+def deploy(
+    ctx: click.Context,
+    *,
+    config_path: Path,
+    max_ticks: int | None,
+    duration: float | None,
+    as_json: bool,
+    otlp_endpoint: str | None,
+    otlp_protocol: str | None,
+    trace_sample_ratio: float | None,
+) -> None:
+    """Run a deployment until --max-ticks, --duration, Ctrl-C or a safety stop.
+
+    Every tick is traced under one cli.command span, which continues the trace named by a
+    TRACEPARENT environment variable when there is one. Telemetry is exported only when an
+    endpoint is given (flag or OTEL_* variables) and is flushed on every exit.
+    """
     debug = bool(ctx.obj["debug"])
-    with (
-        exit_codes(debug),
-        tracer().start_as_current_span(semconv.SPAN_CLI_COMMAND, attributes={semconv.ATTR_CLI_COMMAND: "deploy"}),
-    ):
-        env = RobotEnvironment.from_yaml(config_path)
-        result = _deploy(env, config_path.parent, max_ticks, duration, quiet=as_json)
-        click.echo(result.model_dump_json(indent=2) if as_json else format_run_result(result))
-        code = _STOP_EXIT_CODES.get(result.stop_reason, EXIT_OK)
-        if result.stop_reason == "estop":
-            code = EXIT_RUNTIME
+    with exit_codes(debug):
+        telemetry = setup(endpoint=otlp_endpoint, protocol=otlp_protocol, sample_ratio=trace_sample_ratio)
+        try:
+            with tracer().start_as_current_span(
+                semconv.SPAN_CLI_COMMAND,
+                context=context_from_env(),
+                attributes={semconv.ATTR_CLI_COMMAND: "deploy", semconv.ATTR_CLI_CONFIG: str(config_path)},
+            ) as span:
+                env = RobotEnvironment.from_yaml(config_path)
+                result = _deploy(env, config_path.parent, max_ticks, duration, quiet=as_json)
+                span.set_attributes(
+                    {semconv.ATTR_RUN_STOP_REASON: result.stop_reason, semconv.ATTR_RUN_TICKS: result.n_ticks}
+                )
+            click.echo(result.model_dump_json(indent=2) if as_json else format_run_result(result))
+            code = _STOP_EXIT_CODES.get(result.stop_reason, EXIT_OK)
+            if result.stop_reason == "estop":
+                code = EXIT_RUNTIME
+        finally:
+            telemetry.shutdown()
     raise SystemExit(code)
 
 
@@ -85,7 +146,7 @@ def _deploy(
         skill.activate()
         runner.activate()
         try:
-            with _stop_on_signals(runner), StatusLine(runner, sys.stderr):
+            with _stop_on_signals(runner), LiveStatus(runner, sys.stderr, title=env.name):
                 try:
                     return runner.run(max_ticks, duration_s=duration)
                 except ROSDeadlineMissed as exc:

@@ -1,6 +1,7 @@
-"""Telemetry names and helpers on the OpenTelemetry API; a no-op until an SDK is set up."""
+"""Telemetry names and helpers on the OpenTelemetry API; a no-op until ``openral_observability.setup.setup()`` runs."""
 
-from openral_observability import metrics, semconv
+from openral_observability import metrics, propagation, semconv
+from openral_observability.propagation import current_traceparent
 from openral_observability.tracing import trace_id_hex, traceparent, tracer
 
-__all__ = ["metrics", "semconv", "trace_id_hex", "traceparent", "tracer"]
+__all__ = ["current_traceparent", "metrics", "propagation", "semconv", "trace_id_hex", "traceparent", "tracer"]

@@ -1,7 +1,18 @@
 """Every span, attribute, event and metric name openral emits, in one table.
 
 Legacy prefixes (``rskill.*``, ``skill.*``, ``safety.*``) are kept verbatim; newer layers
-use ``openral.<layer>.*``.
+use ``openral.<layer>.*``. Durations are histograms in milliseconds; counters count events.
+
+The span tree of one tick::
+
+    cli.command                      (one per ``openral`` invocation; the root under the CLI)
+    └── rskill.tick                  (one per tick; per-phase ``skill.*_ms`` attributes)
+        ├── sensors.read_latest      (one per free-running camera) / sensors.read_synced
+        ├── hal.read_state
+        ├── world_state.snapshot
+        ├── skill.chunk_inference    (current while the skill runs: spans it opens nest here)
+        ├── safety.check
+        └── hal.send_action          (or hal.estop)
 """
 
 from __future__ import annotations
@@ -19,6 +30,8 @@ SPAN_HAL_READ_STATE: Final = "hal.read_state"
 SPAN_WORLD_STATE_SNAPSHOT: Final = "world_state.snapshot"
 SPAN_SKILL_INFERENCE: Final = "skill.chunk_inference"
 SPAN_SKILL_EXECUTE: Final = "rskill.execute"
+"""Alias of the inference phase used by the ROS-side action server; the in-process runner emits
+:data:`SPAN_SKILL_INFERENCE`, and a query for either name finds the skill's work."""
 SPAN_SAFETY_CHECK: Final = "safety.check"
 SPAN_HAL_SEND_ACTION: Final = "hal.send_action"
 SPAN_HAL_ESTOP: Final = "hal.estop"
@@ -38,6 +51,7 @@ ATTR_ACTION_APPLIED: Final = "skill.action_applied"
 ATTR_WITHHELD_REASON: Final = "skill.withheld_reason"
 ATTR_SAFETY_VIOLATIONS: Final = "skill.safety_violations"
 ATTR_LATENESS_MS: Final = "openral.tick.lateness_ms"
+ATTR_DEADLINE_POLICY: Final = "openral.tick.deadline_policy"
 ATTR_STEP_IDX: Final = "skill.step_idx"
 ATTR_EPISODE_IDX: Final = "skill.episode_idx"
 ATTR_REWARD: Final = "skill.reward"
@@ -62,8 +76,16 @@ ATTR_SAFETY_MAX_EE_SPEED: Final = "safety.envelope_max_ee_speed_m_s"
 ATTR_SAFETY_MAX_FORCE: Final = "safety.envelope_max_force_n"
 ATTR_COMPONENT: Final = "openral.world_state.component"
 ATTR_CLI_COMMAND: Final = "openral.cli.command"
+ATTR_CLI_CONFIG: Final = "openral.cli.config"
+ATTR_RUN_STOP_REASON: Final = "openral.run.stop_reason"
+ATTR_RUN_TICKS: Final = "openral.run.ticks"
+ATTR_ESTOP_REASON: Final = "openral.estop.reason"
+ATTR_SYNC_FAILURE: Final = "openral.sensors.sync_failure"
+# OpenTelemetry's own keys, for an exception's text and type on events that are not exceptions.
+ATTR_EXCEPTION_MESSAGE: Final = "exception.message"
+ATTR_EXCEPTION_TYPE: Final = "exception.type"
 
-# Events
+# Events (on the span of the phase where they happen; the tick span for deadline and drop)
 EVENT_DEADLINE_MISSED: Final = "openral.event.deadline_missed"
 EVENT_SENSOR_STALE: Final = "openral.event.sensor_stale"
 EVENT_STALENESS_LATCHED: Final = "openral.event.staleness_latched"
@@ -88,3 +110,7 @@ METRIC_MISSED_SLOTS: Final = "openral.tick.missed_slots"
 METRIC_SAFETY_VIOLATIONS: Final = "openral.safety.violations"
 METRIC_SENSORS_STALE_READS: Final = "openral.sensors.stale_reads"
 METRIC_ACTIONS_WITHHELD: Final = "openral.tick.actions_withheld"
+
+# Log records (structlog → OpenTelemetry): the keys that carry the current span's ids
+LOG_TRACE_ID: Final = "trace_id"
+LOG_SPAN_ID: Final = "span_id"

@@ -21,6 +21,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Final
 
+import numpy as np
 import structlog
 from opentelemetry import context, trace
 from opentelemetry.trace import Span, Status, StatusCode
@@ -235,7 +236,10 @@ class InferenceRunnerBase(ABC):
         metrics.add(semconv.METRIC_DEADLINE_MISSES, 1, self._metric_attrs)
         trace.get_current_span().add_event(
             semconv.EVENT_DEADLINE_MISSED,
-            {semconv.ATTR_LATENESS_MS: self._lateness_ms, "policy": self.deadline_overrun_policy.value},
+            {
+                semconv.ATTR_LATENESS_MS: self._lateness_ms,
+                semconv.ATTR_DEADLINE_POLICY: self.deadline_overrun_policy.value,
+            },
         )
         self._log_late()
         if self.deadline_overrun_policy is DeadlineOverrunPolicy.WARN:
@@ -274,6 +278,9 @@ class InferenceRunnerBase(ABC):
         reason = result.withheld_reason
         if reason is not None:
             self._withheld += 1
+            metrics.add(
+                semconv.METRIC_ACTIONS_WITHHELD, 1, {**self._metric_attrs, semconv.ATTR_WITHHELD_REASON: reason}
+            )
             if reason == "deadline":
                 self._dropped += 1
             if reason in FAULT_REASONS:
@@ -301,6 +308,7 @@ class InferenceRunnerBase(ABC):
             self._trace_id = trace_id_hex(span)
         if span.is_recording():
             attributes: dict[str, Any] = {
+                **self._metric_attrs,
                 semconv.ATTR_TICK_IDX: result.tick_idx,
                 semconv.ATTR_TICK_MS: result.tick_ms,
                 semconv.ATTR_SENSORS_MS: result.sensors_ms,
@@ -451,17 +459,33 @@ class InferenceRunnerBase(ABC):
         return (n_ticks - 1) / span_s
 
     def live_status(self) -> dict[str, float]:
-        """A cheap snapshot for a status display, readable from another thread while running."""
+        """A cheap snapshot for a status display, readable from another thread while running.
+
+        ``rate_hz`` is the average since the run started, ``recent_rate_hz`` over about the last
+        two seconds; tick percentiles cover the most recent ticks (up to 4096); ``stale_sensors``
+        counts the sensors stale in the latest tick, ``stale_reads`` every stale read so far.
+        """
+        recent = list(self.recent_ticks)  # one C-level copy: atomic with respect to the tick thread
         n = len(self._tick_ms)
         elapsed = self._clock.now() - self._run_t0 if self._run_t0 else 0.0
+        tick_ms = np.fromiter((t.tick_ms for t in recent), dtype=np.float64, count=len(recent))
+        recent_rate = 0.0
+        window = recent[-(int(2.0 * self.rate_hz) + 1) :]
+        if len(window) >= 2 and window[-1].start_ns > window[0].start_ns:
+            recent_rate = (len(window) - 1) / ((window[-1].start_ns - window[0].start_ns) / 1e9)
+        p50, p99 = np.percentile(tick_ms, (50, 99)) if recent else (0.0, 0.0)
         return {
             "ticks": float(n),
+            "target_hz": self.rate_hz,
             "rate_hz": n / elapsed if elapsed > 0 else 0.0,
-            "tick_ms_p50": self._tick_ms.percentile(50),
-            "tick_ms_p99": self._tick_ms.percentile(99),
+            "recent_rate_hz": recent_rate,
+            "tick_ms_p50": float(p50),
+            "tick_ms_p99": float(p99),
             "deadline_misses": float(self._deadline_misses),
             "missed_slots": float(self._missed_slots),
             "dropped_actions": float(self._dropped),
+            "withheld_actions": float(self._withheld),
+            "stale_sensors": float(len(recent[-1].stale_sensors)) if recent else 0.0,
             "stale_reads": float(self._stale_reads),
             "safety_violations": float(self._safety_violations),
         }

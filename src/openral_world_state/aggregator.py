@@ -24,9 +24,6 @@ from openral_observability.tracing import tracer
 JOINT_STATE_COMPONENT = "joint_state"
 """Component name of the robot's joint state in ``WorldState.diagnostics``."""
 
-# OpenTelemetry's own key for a failure's text; semconv has no world-state error attribute.
-_ATTR_ERROR_MESSAGE = "exception.message"
-
 
 @dataclass(slots=True)
 class _Component:
@@ -225,7 +222,9 @@ class WorldStateAggregator:
             span.add_event(semconv.EVENT_STALENESS_LATCHED, attributes)
         component.stale_latched = stale
         if error is not None and not component.error_latched:
-            span.add_event(semconv.EVENT_ERROR_LATCHED, {**(component.attributes or {}), _ATTR_ERROR_MESSAGE: error})
+            span.add_event(
+                semconv.EVENT_ERROR_LATCHED, {**(component.attributes or {}), semconv.ATTR_EXCEPTION_MESSAGE: error}
+            )
         component.error_latched = error is not None
         unhealthy = stale or error is not None
         if unhealthy != component.unhealthy:

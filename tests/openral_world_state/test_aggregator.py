@@ -9,11 +9,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from opentelemetry import metrics, trace
-from opentelemetry.sdk.metrics import MeterProvider
 from opentelemetry.sdk.metrics.export import InMemoryMetricReader
-from opentelemetry.sdk.trace import ReadableSpan, TracerProvider
-from opentelemetry.sdk.trace.export import SimpleSpanProcessor
+from opentelemetry.sdk.trace import ReadableSpan
 from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
 
 from openral_core import JointState, ROSConfigError, SensorFrame, SensorReaderConfig
@@ -23,43 +20,20 @@ from openral_world_state import JOINT_STATE_COMPONENT, WorldStateAggregator
 MS = 1_000_000
 T0 = 1_000 * MS
 
-_SPANS = InMemorySpanExporter(max_spans=10_000)
-_METRICS: InMemoryMetricReader | None = None
-_installed = False
 
-
-def _install_telemetry() -> None:
-    """Attach in-memory exporters to the global providers, setting them only if nobody has."""
-    global _installed, _METRICS  # noqa: PLW0603
-    if _installed:
-        return
-    provider = trace.get_tracer_provider()
-    if isinstance(provider, TracerProvider):
-        provider.add_span_processor(SimpleSpanProcessor(_SPANS))
-    else:
-        sdk_provider = TracerProvider()
-        sdk_provider.add_span_processor(SimpleSpanProcessor(_SPANS))
-        trace.set_tracer_provider(sdk_provider)
-    if not isinstance(metrics.get_meter_provider(), MeterProvider):
-        _METRICS = InMemoryMetricReader()
-        metrics.set_meter_provider(MeterProvider(metric_readers=[_METRICS]))
-    _installed = True
+@pytest.fixture
+def spans(otel: Any) -> Iterator[InMemorySpanExporter]:
+    """The session's in-memory span exporter (tests/conftest.py), cleared around the test."""
+    otel.exporter.clear()
+    yield otel.exporter
+    otel.exporter.clear()
 
 
 @pytest.fixture
-def spans() -> Iterator[InMemorySpanExporter]:
-    _install_telemetry()
-    _SPANS.clear()
-    yield _SPANS
-    _SPANS.clear()
-
-
-@pytest.fixture
-def metric_reader() -> InMemoryMetricReader:
-    _install_telemetry()
-    if _METRICS is None:
-        pytest.skip("another module installed the global MeterProvider first; cannot attach a reader")
-    return _METRICS
+def metric_reader(otel: Any) -> InMemoryMetricReader:
+    """The session's in-memory metric reader; values are cumulative, so tests compare deltas."""
+    reader: InMemoryMetricReader = otel.reader
+    return reader
 
 
 class FakeClock:
