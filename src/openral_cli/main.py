@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import logging
 import signal
 import sys
@@ -24,6 +25,9 @@ from openral_observability.propagation import context_from_env
 from openral_observability.setup import PROTOCOLS, setup
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.factory import build_runner
+
+FOXGLOVE_DEFAULT_PORT = 8765
+"""Foxglove's conventional WebSocket port."""
 
 _STOP_EXIT_CODES = {"signal:SIGINT": EXIT_SIGINT, "signal:SIGTERM": EXIT_SIGTERM, "faults": EXIT_RUNTIME}
 
@@ -96,6 +100,24 @@ def cli(ctx: click.Context, debug: bool) -> None:
     default=None,
     help="Fraction of runs whose ticks are traced (ParentBased(TraceIdRatioBased)); default: all.",
 )
+@click.option(
+    "--foxglove",
+    "foxglove_port",
+    type=click.IntRange(0, 65535),
+    is_flag=False,
+    flag_value=FOXGLOVE_DEFAULT_PORT,
+    default=None,
+    metavar="[PORT]",
+    help=f"Serve a live Foxglove WebSocket (joint states, cameras, tick timings, safety events); "
+    f"default port {FOXGLOVE_DEFAULT_PORT}.",
+)
+@click.option(
+    "--mcap",
+    "mcap_path",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="Record the same channels as --foxglove to an MCAP file.",
+)
 @click.pass_context
 def deploy(
     ctx: click.Context,
@@ -107,6 +129,8 @@ def deploy(
     otlp_endpoint: str | None,
     otlp_protocol: str | None,
     trace_sample_ratio: float | None,
+    foxglove_port: int | None,
+    mcap_path: Path | None,
 ) -> None:
     """Run a deployment until --max-ticks, --duration, Ctrl-C or a safety stop.
 
@@ -124,7 +148,15 @@ def deploy(
                 attributes={semconv.ATTR_CLI_COMMAND: "deploy", semconv.ATTR_CLI_CONFIG: str(config_path)},
             ) as span:
                 env = RobotEnvironment.from_yaml(config_path)
-                result = _deploy(env, config_path.parent, max_ticks, duration, quiet=as_json)
+                result = _deploy(
+                    env,
+                    config_path.parent,
+                    max_ticks,
+                    duration,
+                    quiet=as_json,
+                    foxglove_port=foxglove_port,
+                    mcap_path=mcap_path,
+                )
                 span.set_attributes(
                     {semconv.ATTR_RUN_STOP_REASON: result.stop_reason, semconv.ATTR_RUN_TICKS: result.n_ticks}
                 )
@@ -138,9 +170,24 @@ def deploy(
 
 
 def _deploy(
-    env: RobotEnvironment, base_dir: Path, max_ticks: int | None, duration: float | None, *, quiet: bool
+    env: RobotEnvironment,
+    base_dir: Path,
+    max_ticks: int | None,
+    duration: float | None,
+    *,
+    quiet: bool,
+    foxglove_port: int | None = None,
+    mcap_path: Path | None = None,
 ) -> RunResult:
     runner, skill = build_runner(env, base_dir=base_dir)
+    sink = None
+    if foxglove_port is not None or mcap_path is not None:
+        # Loaded only when asked for: the bridge imports foxglove-sdk (the 'foxglove' extra).
+        bridge = importlib.import_module("openral_runner.bridges.foxglove")
+        sink = bridge.FoxgloveSink(port=foxglove_port, mcap_path=mcap_path, image_hz=env.thumbnail_hz or 10.0)
+        runner.observers.append(sink)  # closed by runner.deactivate(), also when activate() rolls back
+        if sink.port is not None and not quiet:
+            click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
     skill.configure()
     try:
         skill.activate()
@@ -157,6 +204,8 @@ def _deploy(
             runner.deactivate()
     finally:
         skill.shutdown()
+        if sink is not None:
+            sink.close()  # idempotent; here for runs that never reached activate()
 
 
 @contextmanager

@@ -130,3 +130,17 @@ def test_sigint_finishes_the_tick_and_exits_130(tmp_path: Path) -> None:
     result = json.loads(stdout)
     assert result["stop_reason"] == "signal:SIGINT"
     assert result["n_ticks"] > 0
+
+
+def test_deploy_records_mcap_with_one_tick_message_per_tick(tmp_path: Path) -> None:
+    pytest.importorskip("foxglove", reason="needs the 'foxglove' extra")
+    from mcap.reader import make_reader  # noqa: PLC0415
+
+    path = write(tmp_path, NULL_DEPLOYMENT)
+    recording = tmp_path / "run.mcap"
+    out = CliRunner().invoke(cli, ["deploy", "--config", str(path), "--max-ticks", "25", "--mcap", str(recording)])
+    assert out.exit_code == 0, out.output
+    with recording.open("rb") as stream:
+        topics = [channel.topic for _schema, channel, _message in make_reader(stream).iter_messages()]
+    assert topics.count("/openral/tick") == 25
+    assert topics.count("/joint_states") == 25
