@@ -16,8 +16,11 @@ from types import TracebackType
 from typing import Self
 
 import numpy as np
+import structlog
 
 from openral_core import FrameEncoding, ROSPerceptionStale, ROSRuntimeError, SensorFrame
+
+_log = structlog.get_logger(__name__)
 
 _FPS_SMOOTHING = 0.1
 """Weight of the newest inter-frame interval in the delivered-fps estimate."""
@@ -252,6 +255,15 @@ class SlotReader(ABC):
             ROSPerceptionStale: No such frame by the deadline.
         """
         return self._slot.read_synced(deadline_ns, newer_than_ns=newer_than_ns)
+
+    def _stop_worker(self, stop: threading.Event, thread: threading.Thread | None, *, timeout_s: float) -> None:
+        """Signal the capture worker, close the slot and join the worker for at most ``timeout_s``."""
+        stop.set()
+        self._slot.close()
+        if thread is not None:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                _log.warning("capture thread did not stop in time", sensor=self.sensor_id, thread=thread.name)
 
     def __enter__(self) -> Self:
         self.open()

@@ -251,13 +251,8 @@ class MujocoCameraSensorReader(SlotReader):
 
     def close(self) -> None:
         """Stop and join the render thread, which frees its GL context. Idempotent."""
-        self._stop.set()
-        self._slot.close()
         thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.join(JOIN_TIMEOUT_S)
-            if thread.is_alive():
-                _log.warning("mujoco camera render thread did not stop in time", sensor=self.sensor_id)
+        self._stop_worker(self._stop, thread, timeout_s=JOIN_TIMEOUT_S)
 
     # -- reading -------------------------------------------------------------------------
 

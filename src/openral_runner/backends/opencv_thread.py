@@ -261,13 +261,8 @@ class OpenCVThreadSensorReader(SlotReader):
         If the thread does not stop within ``JOIN_TIMEOUT_S`` (a driver stuck in a read), it
         releases the device itself when that read returns.
         """
-        self._stop.set()
-        self._slot.close()
         thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.join(JOIN_TIMEOUT_S)
-            if thread.is_alive():
-                _log.warning("opencv capture thread did not stop in time", sensor=self.sensor_id)
+        self._stop_worker(self._stop, thread, timeout_s=JOIN_TIMEOUT_S)
 
     # -- reading -------------------------------------------------------------------------
 
