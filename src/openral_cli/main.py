@@ -17,8 +17,9 @@ import structlog
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, EXIT_RUNTIME, EXIT_SIGINT, EXIT_SIGTERM, exit_codes
 from openral_cli.report import format_run_result
 from openral_cli.status import LiveStatus
-from openral_core import RobotEnvironment, ROSDeadlineMissed, RunResult
+from openral_core import RobotEnvironment, ROSConfigError, ROSDeadlineMissed, RunResult
 from openral_core.schema import robot_environment_schema_json
+from openral_hal.manifests import load_robot_manifest
 from openral_observability import semconv, tracer
 from openral_observability.logs import OTelLogBridge, add_trace_ids
 from openral_observability.propagation import context_from_env
@@ -250,6 +251,54 @@ def schema(output: Path | None) -> None:
     else:
         output.write_text(text, encoding="utf-8")
         click.echo(f"wrote {output}", err=True)
+
+
+@cli.command()
+@click.option("--robot", "robot_id", default="so101_follower", show_default=True, help="Robot manifest id.")
+@click.option("--port", required=True, help="Serial device of the arm's servo bus, e.g. /dev/ttyACM0.")
+@click.option(
+    "--output",
+    "-o",
+    required=True,
+    type=click.Path(path_type=Path, dir_okay=False),
+    help="Calibration file to write (.json, or YAML for any other suffix).",
+)
+@click.option("--baudrate", type=click.IntRange(min=1), default=1_000_000, show_default=True)
+@click.option(
+    "--record-s", type=click.FloatRange(min=1), default=15.0, show_default=True, help="Seconds to record the ranges."
+)
+@click.option("--invert", multiple=True, metavar="JOINT", help="A joint whose servo turns backwards (repeatable).")
+@click.pass_context
+def calibrate(
+    ctx: click.Context,
+    *,
+    robot_id: str,
+    port: str,
+    output: Path,
+    baudrate: int,
+    record_s: float,
+    invert: tuple[str, ...],
+) -> None:
+    """Record an SO-100/SO-101 arm's middle pose and joint ranges into a calibration file."""
+    with exit_codes(bool(ctx.obj["debug"])):
+        manifest = load_robot_manifest(robot_id)
+        unknown = sorted(set(invert) - set(manifest.joint_names))
+        if unknown:
+            raise ROSConfigError(
+                f"unknown joint(s) {unknown}; joints: {', '.join(manifest.joint_names)}", field="--invert"
+            )
+        # Loaded only here: the Feetech bus imports pyserial (the 'serial' extra).
+        feetech = importlib.import_module("openral_hal.feetech.calibrate")
+        feetech.calibrate(
+            manifest,
+            port,
+            output,
+            baudrate=baudrate,
+            record_s=record_s,
+            directions=dict.fromkeys(invert, -1),
+            prompt=lambda message: click.prompt(message, default="", show_default=False),
+            say=click.echo,
+        )
 
 
 def main() -> None:

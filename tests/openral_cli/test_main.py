@@ -144,3 +144,45 @@ def test_deploy_records_mcap_with_one_tick_message_per_tick(tmp_path: Path) -> N
         topics = [channel.topic for _schema, channel, _message in make_reader(stream).iter_messages()]
     assert topics.count("/openral/tick") == 25
     assert topics.count("/joint_states") == 25
+
+
+def test_calibrate_records_the_ranges_a_person_moves_through(tmp_path: Path) -> None:
+    pytest.importorskip("serial", reason="needs the 'serial' extra (pyserial)")
+    import threading  # noqa: PLC0415
+
+    from openral_hal.feetech.calibration import load_calibration  # noqa: PLC0415
+    from openral_hal.feetech.emulator import ServoBusEmulator  # noqa: PLC0415
+
+    output = tmp_path / "so101.json"
+    with ServoBusEmulator(range(1, 7)) as bus:
+        done = threading.Event()
+
+        def person_moves_the_arm() -> None:
+            # After the middle pose is confirmed, sweep each joint 600 ticks each way, as a hand would.
+            time.sleep(0.3)
+            for servo_id in range(1, 7):
+                bus.move_by_hand(servo_id, 2048 - 600)
+                time.sleep(0.05)
+                bus.move_by_hand(servo_id, 2048 + 600)
+                time.sleep(0.05)
+            done.set()
+
+        mover = threading.Thread(target=person_moves_the_arm)
+        mover.start()
+        out = CliRunner().invoke(
+            cli, ["calibrate", "--port", bus.port, "--output", str(output), "--record-s", "1.5"], input="\n\n\n"
+        )
+        mover.join()
+    assert done.is_set()
+    assert out.exit_code == 0, out.output
+    calibration = load_calibration(output)
+    for joint in calibration.joints.values() if isinstance(calibration.joints, dict) else calibration.joints:
+        assert joint.range_min <= 2048 - 600
+        assert joint.range_max >= 2048 + 600
+
+
+def test_calibrate_rejects_unknown_joint(tmp_path: Path) -> None:
+    out = CliRunner().invoke(cli, ["calibrate", "--port", "/dev/null", "-o", str(tmp_path / "c.json"), "--invert", "elbow"])
+    assert out.exit_code == 2
+    assert "--invert" in out.output
+    assert "elbow_flex" in out.output

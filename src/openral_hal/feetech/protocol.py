@@ -1,0 +1,240 @@
+"""Feetech SCS/STS serial protocol: packet framing, checksum and the STS3215 control table.
+
+Pure Python, no I/O. Every packet, in both directions, is framed the same way::
+
+    0xFF 0xFF  ID  LEN  CODE  PARAM...  CHECKSUM
+
+``LEN`` counts ``CODE``, the parameters and the checksum (``len(params) + 2``). ``CODE`` is the
+instruction in a request and the servo's error byte in a status reply. The checksum is
+``~(ID + LEN + CODE + sum(params)) & 0xFF``. Multi-byte registers are little-endian; the STS
+series stores present position and speed in sign-magnitude with the sign in bit 15.
+
+Sources: Feetech's SCServo SDK (``scservo_sdk``: instruction codes, SYNC_READ/SYNC_WRITE layout,
+error bits) and its ``SMS_STS`` control table, as used by LeRobot's Feetech motor bus.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+
+HEADER = b"\xff\xff"
+BROADCAST_ID = 0xFE
+MAX_ID = 0xFD
+STS3215_MODEL_NUMBER = 777
+TICKS_PER_REV = 4096
+MAX_TICK = TICKS_PER_REV - 1
+RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
+MAX_PACKET_PARAMS = 250
+
+
+class Instruction(IntEnum):
+    """Instruction codes of a request packet."""
+
+    PING = 0x01
+    READ = 0x02
+    WRITE = 0x03
+    REG_WRITE = 0x04
+    ACTION = 0x05
+    SYNC_READ = 0x82
+    SYNC_WRITE = 0x83
+
+
+class ServoError(IntFlag):
+    """Bits of the error byte in a status reply (scservo_sdk ``ERRBIT_*``)."""
+
+    VOLTAGE = 0x01
+    ANGLE = 0x02
+    OVERHEAT = 0x04
+    OVERCURRENT = 0x08
+    OVERLOAD = 0x20
+
+
+class Register(IntEnum):
+    """STS3215 (SMS/STS series) control table addresses used here."""
+
+    MODEL_NUMBER = 3  # 2 bytes, read-only EEPROM
+    ID = 5
+    BAUD_RATE = 6
+    RETURN_DELAY = 7
+    MIN_POSITION_LIMIT = 9  # 2 bytes
+    MAX_POSITION_LIMIT = 11  # 2 bytes
+    HOMING_OFFSET = 31  # 2 bytes, sign bit 11
+    OPERATING_MODE = 33
+    TORQUE_ENABLE = 40  # SRAM from here
+    ACCELERATION = 41
+    GOAL_POSITION = 42  # 2 bytes
+    GOAL_TIME = 44  # 2 bytes
+    GOAL_SPEED = 46  # 2 bytes
+    LOCK = 55
+    PRESENT_POSITION = 56  # 2 bytes, sign bit 15
+    PRESENT_SPEED = 58  # 2 bytes, sign bit 15, ticks/s
+    PRESENT_LOAD = 60  # 2 bytes
+    PRESENT_VOLTAGE = 62
+    PRESENT_TEMPERATURE = 63
+    MOVING = 66
+    PRESENT_CURRENT = 69  # 2 bytes
+
+
+class PacketError(Exception):
+    """A framed packet that cannot be accepted.
+
+    Attributes:
+        consumed: Bytes of the buffer the bad packet occupied (skip them and parse on).
+    """
+
+    def __init__(self, message: str, consumed: int) -> None:
+        super().__init__(message)
+        self.consumed = consumed
+
+
+class ChecksumError(PacketError):
+    """A packet whose checksum does not match its contents."""
+
+
+@dataclass(frozen=True, slots=True)
+class Packet:
+    """One decoded packet.
+
+    Attributes:
+        servo_id: The addressed servo (request) or the replying one (status).
+        code: The instruction (request) or the error byte (status reply).
+        params: The parameter bytes.
+    """
+
+    servo_id: int
+    code: int
+    params: bytes
+
+    @property
+    def error(self) -> ServoError:
+        """The error byte of a status reply as flags."""
+        return ServoError(self.code & 0x2F)
+
+
+def checksum(body: Iterable[int]) -> int:
+    """``~sum(body) & 0xFF`` over the bytes from ID to the last parameter."""
+    return ~sum(body) & 0xFF
+
+
+def encode(servo_id: int, code: int, params: bytes | bytearray = b"") -> bytes:
+    """Frame one packet (request or status reply).
+
+    Raises:
+        ValueError: An id or code outside one byte, or too many parameter bytes.
+    """
+    if not 0 <= servo_id <= 0xFE:
+        raise ValueError(f"servo id {servo_id} is outside 0..254")
+    if not 0 <= code <= 0xFF:
+        raise ValueError(f"code {code} is outside one byte")
+    if len(params) > MAX_PACKET_PARAMS:
+        raise ValueError(f"{len(params)} parameter bytes exceed the {MAX_PACKET_PARAMS}-byte packet limit")
+    body = bytes((servo_id, len(params) + 2, code)) + bytes(params)
+    return HEADER + body + bytes((checksum(body),))
+
+
+def ping_packet(servo_id: int) -> bytes:
+    """PING one servo; it answers with an empty status reply."""
+    return encode(servo_id, Instruction.PING)
+
+
+def read_packet(servo_id: int, address: int, length: int) -> bytes:
+    """READ ``length`` bytes from ``address`` of one servo."""
+    return encode(servo_id, Instruction.READ, bytes((address, length)))
+
+
+def write_packet(servo_id: int, address: int, data: bytes) -> bytes:
+    """WRITE ``data`` at ``address`` of one servo (``BROADCAST_ID`` for all, no reply then)."""
+    return encode(servo_id, Instruction.WRITE, bytes((address,)) + data)
+
+
+def sync_read_packet(servo_ids: Iterable[int], address: int, length: int) -> bytes:
+    """SYNC_READ: each listed servo replies in turn with its own status packet of ``length`` bytes."""
+    return encode(BROADCAST_ID, Instruction.SYNC_READ, bytes((address, length, *servo_ids)))
+
+
+def sync_write_packet(address: int, data: Mapping[int, bytes]) -> bytes:
+    """SYNC_WRITE the same-sized ``data[id]`` at ``address`` of every listed servo; nobody replies.
+
+    Raises:
+        ValueError: The data blocks differ in size, or none is given.
+    """
+    sizes = {len(block) for block in data.values()}
+    if len(sizes) != 1:
+        raise ValueError(f"sync write needs one data size for all servos, got sizes {sorted(sizes)}")
+    params = bytearray((address, sizes.pop()))
+    for servo_id, block in data.items():
+        params.append(servo_id)
+        params += block
+    return encode(BROADCAST_ID, Instruction.SYNC_WRITE, params)
+
+
+def status_packet(servo_id: int, error: int = 0, params: bytes = b"") -> bytes:
+    """A servo's status reply (used by the emulator and tests)."""
+    return encode(servo_id, error, params)
+
+
+def decode(buffer: bytes | bytearray) -> tuple[Packet | None, int]:
+    """Find the first whole packet in ``buffer``.
+
+    Returns:
+        ``(packet, consumed)``: the packet and the bytes it and any junk before it used, or
+        ``(None, skip)`` when no whole packet is there yet (``skip`` junk bytes may be dropped).
+
+    Raises:
+        ChecksumError: The first framed packet has a wrong checksum (``consumed`` says how long it was).
+        PacketError: The first framed packet has an impossible length byte.
+    """
+    start = buffer.find(HEADER)
+    if start < 0:
+        # Keep a trailing 0xFF: it may be the first half of the next header.
+        return None, len(buffer) - (1 if buffer[-1:] == b"\xff" else 0)
+    # Skip a run of 0xFF (a header may be preceded by a stray 0xFF).
+    while start + 2 < len(buffer) and buffer[start + 2] == 0xFF:
+        start += 1
+    if len(buffer) < start + 4:
+        return None, start
+    length = buffer[start + 3]
+    if length < 2:
+        raise PacketError(f"packet length byte {length} is below the minimum of 2", start + 4)
+    end = start + 4 + length
+    if len(buffer) < end:
+        return None, start
+    body = bytes(buffer[start + 2 : end - 1])
+    if checksum(body) != buffer[end - 1]:
+        raise ChecksumError(
+            f"checksum mismatch for packet from id {body[0]}: got 0x{buffer[end - 1]:02x}, "
+            f"expected 0x{checksum(body):02x}",
+            end,
+        )
+    return Packet(servo_id=body[0], code=body[2], params=body[3:]), end
+
+
+def u16(value: int) -> bytes:
+    """Two little-endian bytes of an unsigned 16-bit value."""
+    return bytes((value & 0xFF, (value >> 8) & 0xFF))
+
+
+def from_u16(data: bytes | bytearray, offset: int = 0) -> int:
+    """Unsigned 16-bit little-endian value at ``offset``."""
+    return data[offset] | (data[offset + 1] << 8)
+
+
+def encode_sign_magnitude(value: int, sign_bit: int = 15) -> int:
+    """Sign-magnitude encoding with the sign in ``sign_bit`` (STS present position and speed).
+
+    Raises:
+        ValueError: The magnitude does not fit below the sign bit.
+    """
+    magnitude = abs(int(value))
+    if magnitude >= 1 << sign_bit:
+        raise ValueError(f"magnitude {magnitude} does not fit in {sign_bit} bits")
+    return magnitude | ((1 << sign_bit) if value < 0 else 0)
+
+
+def decode_sign_magnitude(raw: int, sign_bit: int = 15) -> int:
+    """Inverse of :func:`encode_sign_magnitude`."""
+    magnitude = raw & ((1 << sign_bit) - 1)
+    return -magnitude if raw >> sign_bit & 1 else magnitude

@@ -1,0 +1,122 @@
+"""FeetechBus against the emulator on a real pseudo-terminal: transactions, retries, faults."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import pytest
+
+pytest.importorskip("serial", reason="needs the 'serial' extra")
+
+from openral_core import ROSHardwareError
+from openral_hal.feetech import protocol as p
+from openral_hal.feetech.bus import FeetechBus, ServoNoReply
+from openral_hal.feetech.emulator import ServoBusEmulator
+
+IDS = [1, 2, 3]
+
+
+@pytest.fixture
+def emu() -> Iterator[ServoBusEmulator]:
+    with ServoBusEmulator(IDS) as emulator:
+        yield emulator
+
+
+@pytest.fixture
+def bus(emu: ServoBusEmulator) -> Iterator[FeetechBus]:
+    with FeetechBus(emu.port, timeout_s=0.02, retries=2) as b:
+        yield b
+
+
+def test_ping_read_write(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    bus.ping(2)
+    assert p.from_u16(bus.read(2, p.Register.MODEL_NUMBER, 2)) == p.STS3215_MODEL_NUMBER
+    bus.write(2, p.Register.TORQUE_ENABLE, b"\x01")
+    assert emu.torque() == {1: False, 2: True, 3: False}
+
+
+def test_sync_write_moves_servos_toward_goal_over_the_pty(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    bus.sync_write(p.Register.TORQUE_ENABLE, dict.fromkeys(IDS, b"\x01"))
+    bus.sync_write(p.Register.GOAL_POSITION, {1: p.u16(2348), 2: p.u16(1748), 3: p.u16(2048)})
+    time.sleep(0.05)
+    mid = bus.sync_read(IDS, p.Register.PRESENT_POSITION, 4)
+    pos1, speed1 = p.from_u16(mid[1]), p.decode_sign_magnitude(p.from_u16(mid[1], 2))
+    assert 2048 < pos1 < 2348  # moving at ~3000 ticks/s, not teleported
+    assert speed1 > 0
+    assert p.decode_sign_magnitude(p.from_u16(mid[2], 2)) < 0
+    time.sleep(0.15)
+    done = bus.sync_read(IDS, p.Register.PRESENT_POSITION, 2)
+    assert {i: p.from_u16(v) for i, v in done.items()} == {1: 2348, 2: 1748, 3: 2048}
+
+
+def test_torque_off_servo_does_not_move(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    bus.sync_write(p.Register.GOAL_POSITION, {1: p.u16(3000)})
+    time.sleep(0.05)
+    assert emu.positions()[1] == 2048
+
+
+def test_timeout_raises_after_configured_retries(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    emu.drop_replies = 10**6
+    start = time.monotonic()
+    with pytest.raises(ServoNoReply, match=r"failed after 3 attempt\(s\)") as info:
+        bus.sync_read(IDS, p.Register.PRESENT_POSITION, 2)
+    assert isinstance(info.value, ROSHardwareError)
+    assert emu.port in str(info.value)
+    assert info.value.missing == IDS
+    assert bus.stats.retries == 2
+    assert bus.stats.timeouts == 3
+    assert emu.requests == 3
+    assert time.monotonic() - start < 1.0
+
+
+def test_one_dropped_reply_is_retried_transparently(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    emu.drop_replies = 1
+    assert set(bus.sync_read(IDS, p.Register.PRESENT_POSITION, 2)) == set(IDS)
+    assert bus.stats.retries == 1
+
+
+def test_corrupt_checksum_is_detected_and_retried(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    emu.corrupt_checksum = 1
+    replies = bus.sync_read(IDS, p.Register.PRESENT_POSITION, 2)
+    assert {i: p.from_u16(v) for i, v in replies.items()} == dict.fromkeys(IDS, 2048)
+    assert bus.stats.bad_packets == 1
+    assert bus.stats.retries == 1
+
+
+def test_persistent_corruption_fails_naming_it(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    emu.corrupt_checksum = 10**6
+    with pytest.raises(ServoNoReply, match="checksum mismatch"):
+        bus.ping(1)
+
+
+def test_missing_servo_found_by_ping(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    emu.missing_ids = {3}
+    assert bus.find(IDS) == [3]
+
+
+def test_slow_reply_within_timeout_succeeds_beyond_it_fails(emu: ServoBusEmulator) -> None:
+    emu.reply_delay_s = 0.01
+    with FeetechBus(emu.port, timeout_s=0.05, retries=0) as bus:
+        bus.ping(1)
+    emu.reply_delay_s = 0.06
+    with FeetechBus(emu.port, timeout_s=0.02, retries=0) as bus, pytest.raises(ServoNoReply):
+        bus.ping(1)
+
+
+def test_bus_gone_raises_hardware_error_naming_port(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    emu.disconnect()
+    with pytest.raises(ROSHardwareError, match=emu.port):
+        bus.sync_read(IDS, p.Register.PRESENT_POSITION, 2)
+    with pytest.raises(ROSHardwareError, match="SYNC_WRITE"):
+        bus.sync_write(p.Register.GOAL_POSITION, {1: p.u16(100)})
+
+
+def test_open_missing_port_names_it() -> None:
+    with pytest.raises(ROSHardwareError, match="/dev/does-not-exist"):
+        FeetechBus("/dev/does-not-exist").open()
+
+
+def test_not_open_raises() -> None:
+    with pytest.raises(ROSHardwareError, match="not open"):
+        FeetechBus("/dev/null").ping(1)
