@@ -176,13 +176,14 @@ def test_calibrate_records_the_ranges_a_person_moves_through(tmp_path: Path) -> 
     assert done.is_set()
     assert out.exit_code == 0, out.output
     calibration = load_calibration(output)
-    for joint in calibration.joints.values() if isinstance(calibration.joints, dict) else calibration.joints:
+    for joint in calibration.joints.values():
         assert joint.range_min <= 2048 - 600
         assert joint.range_max >= 2048 + 600
 
 
 def test_calibrate_rejects_unknown_joint(tmp_path: Path) -> None:
-    out = CliRunner().invoke(cli, ["calibrate", "--port", "/dev/null", "-o", str(tmp_path / "c.json"), "--invert", "elbow"])
+    args = ["calibrate", "--port", "/dev/null", "-o", str(tmp_path / "c.json"), "--invert", "elbow"]
+    out = CliRunner().invoke(cli, args)
     assert out.exit_code == 2
     assert "--invert" in out.output
     assert "elbow_flex" in out.output
