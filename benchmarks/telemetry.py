@@ -10,9 +10,9 @@ OpenTelemetry providers can be installed only once per process:
 * ``otlp``: ``openral_observability.setup.setup()`` exporting OTLP/HTTP (batch span processor,
   periodic metric reader every second) to a receiver on 127.0.0.1 in this process, which decodes
   every request with ``opentelemetry-proto`` as a collector would;
-* ``otlp_10pct``: the same with ``sample_ratio=0.1``. Here every tick is a root span, so a tenth
-  of the ticks are traced (metrics still see every tick). Under ``openral deploy`` the ticks share
-  the ``cli.command`` trace, so the ratio selects whole runs instead.
+* ``otlp_10pct``: the same with ``sample_ratio=0.1``: ``setup()``'s tick sampler traces every
+  tenth tick whole (as it would under ``openral deploy``'s ``cli.command`` root); the other ticks
+  make no phase spans, and metrics still see every tick.
 
 Reported per configuration (median over ``--rounds`` interleaved rounds): the tick's own wall
 time (mean, p50, p99, as the runner measures it: the cost on the tick thread), the CPU time of

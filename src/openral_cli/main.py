@@ -99,7 +99,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     "--trace-sample-ratio",
     type=click.FloatRange(0.0, 1.0),
     default=None,
-    help="Fraction of runs whose ticks are traced (ParentBased(TraceIdRatioBased)); default: all.",
+    help="Fraction of ticks traced, each tick whole (0.1: every tenth tick); default: all.",
 )
 @click.option(
     "--foxglove",

@@ -27,7 +27,7 @@ import structlog
 from opentelemetry import trace
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError
-from openral_observability.semconv import METER_NAME
+from openral_observability.semconv import METER_NAME, SPAN_TICK
 
 PROTOCOL_HTTP: Final = "http/protobuf"
 PROTOCOL_GRPC: Final = "grpc"
@@ -41,6 +41,11 @@ MS_HISTOGRAM_BOUNDARIES: Final = (
 )  # fmt: skip
 """Bucket bounds (ms) for openral's duration histograms: tick phases live between 10 µs and a second."""
 
+SPAN_QUEUE_SIZE: Final = 8192
+"""Spans buffered for export: about two seconds of a 500 Hz deployment's ticks."""
+SPAN_EXPORT_BATCH_SIZE: Final = 1024
+"""Spans per OTLP request: fewer, larger requests cost the exporter thread less GIL time per span."""
+
 _log = structlog.get_logger(__name__)
 
 
@@ -53,8 +58,8 @@ class TelemetryConfig:
             to let the exporter read its own ``OTEL_EXPORTER_OTLP_*`` variables. Signals not
             listed are not exported.
         protocols: Signal → ``http/protobuf`` or ``grpc``.
-        sample_ratio: Fraction of new traces recorded (``ParentBased(TraceIdRatioBased)``);
-            ``None`` keeps the SDK's choice (``OTEL_TRACES_SAMPLER``, else always on).
+        sample_ratio: Fraction of ticks traced (see :func:`tick_sampler`); ``None`` keeps
+            ``OTEL_TRACES_SAMPLER`` when set, else every tick is traced.
         service_name: ``service.name`` resource attribute, ``None`` when the environment sets it.
         metric_interval_ms: Export period of the metric reader; ``None`` for the SDK default.
     """
@@ -81,7 +86,7 @@ def resolve_config(
         endpoint: Collector base URL (``http://host:4318`` for HTTP, ``http://host:4317`` for gRPC);
             overrides every ``OTEL_EXPORTER_OTLP_*ENDPOINT`` variable.
         protocol: ``http/protobuf`` or ``grpc``; overrides ``OTEL_EXPORTER_OTLP_*PROTOCOL``.
-        sample_ratio: In [0, 1]; fraction of new traces recorded.
+        sample_ratio: In [0, 1]; fraction of ticks traced (see :func:`tick_sampler`).
         service_name: Used unless ``OTEL_SERVICE_NAME`` or ``OTEL_RESOURCE_ATTRIBUTES`` names the service.
         metric_interval_ms: Metric export period.
         env: The environment to read (``os.environ`` by default).
@@ -281,7 +286,6 @@ def _install(config: TelemetryConfig) -> list[_Provider]:
         from opentelemetry.sdk.resources import Resource  # noqa: PLC0415
         from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415
         from opentelemetry.sdk.trace.export import BatchSpanProcessor  # noqa: PLC0415
-        from opentelemetry.sdk.trace.sampling import ParentBased, TraceIdRatioBased  # noqa: PLC0415
     except ImportError as exc:
         raise ROSDependencyMissing(
             exc.name or "opentelemetry.sdk", extra=OTEL_EXTRA, needed_for="OpenTelemetry export"
@@ -295,9 +299,20 @@ def _install(config: TelemetryConfig) -> list[_Provider]:
     providers: list[_Provider] = []
 
     if "traces" in config.endpoints:
-        sampler = None if config.sample_ratio is None else ParentBased(TraceIdRatioBased(config.sample_ratio))
+        ratio = config.sample_ratio
+        if ratio is None and not os.environ.get("OTEL_TRACES_SAMPLER"):
+            ratio = 1.0
+        sampler = None if ratio is None else tick_sampler(ratio)
         tracer_provider = TracerProvider(resource=resource, sampler=sampler, shutdown_on_exit=False)
-        tracer_provider.add_span_processor(BatchSpanProcessor(exporters["traces"](config.endpoints["traces"])))
+        # Spans leave the tick thread as soon as they end; encoding and posting happen on the
+        # processor's thread in batches, which is what holds the GIL least per span.
+        tracer_provider.add_span_processor(
+            BatchSpanProcessor(
+                exporters["traces"](config.endpoints["traces"]),
+                max_queue_size=SPAN_QUEUE_SIZE,
+                max_export_batch_size=SPAN_EXPORT_BATCH_SIZE,
+            )
+        )
         trace.set_tracer_provider(tracer_provider)
         providers.append(tracer_provider)
     if "metrics" in config.endpoints:
@@ -321,6 +336,71 @@ def _install(config: TelemetryConfig) -> list[_Provider]:
         _logs.set_logger_provider(logger_provider)
         providers.append(logger_provider)
     return providers
+
+
+def tick_sampler(ratio: float) -> Any:
+    """A sampler that traces ``ratio`` of the ticks, each tick whole, independently of its parent.
+
+    * ``rskill.tick`` spans: every ``1/ratio``-th tick is recorded (a deterministic credit
+      counter, so ``0.1`` traces exactly one tick in ten), whether or not the enclosing span
+      (``cli.command``) is, and whatever the trace id: all ticks of one deployment share the
+      ``cli.command`` trace, so a trace-id ratio would keep all of them or none.
+    * Any other span with a parent follows the parent: a traced tick is traced with all its
+      phase spans, an untraced tick costs only non-recording spans.
+    * Other root spans (``cli.command``) are recorded unless ``ratio`` is 0, so traced ticks
+      always have their parent.
+
+    A ratio of 1 records everything, like the SDK's default, with a cheaper decision per span.
+
+    Raises:
+        ROSDependencyMissing: The ``otel`` extra is not installed.
+    """
+    try:
+        from opentelemetry.sdk.trace.sampling import Decision, Sampler, SamplingResult  # noqa: PLC0415
+    except ImportError as exc:
+        raise ROSDependencyMissing(exc.name or "opentelemetry.sdk", extra=OTEL_EXTRA, needed_for="sampling") from exc
+
+    record = SamplingResult(Decision.RECORD_AND_SAMPLE)
+    drop = SamplingResult(Decision.DROP)
+
+    class TickSampler(Sampler):
+        def __init__(self) -> None:
+            self._credit = 1.0 - ratio if ratio > 0.0 else 0.0  # the first tick is traced unless ratio is 0
+
+        def should_sample(  # noqa: PLR0917  (the SDK's signature)
+            self,
+            parent_context: Any,
+            trace_id: int,
+            name: str,
+            kind: Any = None,
+            attributes: Any = None,
+            links: Any = None,
+            trace_state: Any = None,
+        ) -> Any:
+            parent = trace.get_current_span(parent_context).get_span_context()
+            if name == SPAN_TICK:
+                self._credit += ratio
+                if self._credit >= 1.0:
+                    self._credit -= 1.0
+                    sampled = True
+                else:
+                    sampled = False
+            elif parent.is_valid:
+                sampled = parent.trace_flags.sampled
+            else:
+                sampled = ratio > 0.0
+            state = parent.trace_state if parent.is_valid else None
+            if not sampled:
+                return SamplingResult(Decision.DROP, None, state) if state else drop
+            if not state and not attributes:
+                return record
+            # The SDK takes the span's start attributes from the sampling result.
+            return SamplingResult(Decision.RECORD_AND_SAMPLE, attributes, state)
+
+        def get_description(self) -> str:
+            return f"OpenRALTickSampler{{{ratio}}}"
+
+    return TickSampler()
 
 
 def _exporter_classes(config: TelemetryConfig) -> dict[str, Callable[[str | None], Any]]:
@@ -387,4 +467,5 @@ __all__ = [
     "TelemetryConfig",
     "resolve_config",
     "setup",
+    "tick_sampler",
 ]

@@ -92,6 +92,7 @@ class HardwareRunner(InferenceRunnerBase):
         self._synced_readers = [r for r in self.sensor_readers if r.sensor_id in synced]
         self._free_readers = [r for r in self.sensor_readers if r.sensor_id not in synced]
         self._sync_required = any(aggregator.is_required(sensor_id) for sensor_id in synced)
+        self._required_ids = frozenset(r.sensor_id for r in self.sensor_readers if aggregator.is_required(r.sensor_id))
         self._opened: ExitStack | None = None
         self._sensor_errors: set[str] = set()
         self._episode_idx = -1
@@ -102,6 +103,11 @@ class HardwareRunner(InferenceRunnerBase):
             semconv.ATTR_HAL_ADAPTER: type(hal).__name__.lower(),
             semconv.ATTR_HAL_ROBOT_MODEL: hal.robot_id,
         }
+        self._sensor_attrs = {r.sensor_id: {semconv.ATTR_SENSOR_ID: r.sensor_id} for r in self.sensor_readers}
+        # Durations measured here are never negative: recorded on the instruments directly.
+        self._read_state_ms = metrics.histogram(semconv.METRIC_HAL_READ_STATE_DURATION)
+        self._send_action_ms = metrics.histogram(semconv.METRIC_HAL_SEND_ACTION_DURATION)
+        self._start_phase_span: Callable[..., trace.Span] = self._tracer.start_span
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -185,9 +191,16 @@ class HardwareRunner(InferenceRunnerBase):
     def _tick_impl(self, tick_idx: int) -> TickResult:
         # Phase spans are started as children of the current tick span without being made
         # current themselves (``start_span`` costs a tenth of ``start_as_current_span``); only
-        # the inference span becomes current, so spans a skill opens nest under it.
+        # the inference span becomes current, so spans a skill opens nest under it. A tick the
+        # sampler did not record gets no phase spans: they could not be recorded either, and each
+        # would still cost a span id and a sampler call. Its phases (and a skill's spans) use the
+        # tick's own non-recording span instead, which keeps them in the tick's unsampled trace.
         now = self._clock.now
-        tr = self._tracer
+        tick_span = trace.get_current_span()
+        start_span: Callable[..., trace.Span] = (
+            self._tracer.start_span if tick_span.is_recording() else _NonRecordingPhases(tick_span)
+        )
+        self._start_phase_span = start_span
         withheld: str | None = None
         stale: list[str] = []
         violations: list[str] = []
@@ -202,7 +215,7 @@ class HardwareRunner(InferenceRunnerBase):
             if self._sync_required:
                 withheld = "stale_sensor"
         t_read = now()
-        span = tr.start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
+        span = start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
         try:
             state = self.hal.read_state()
             self.aggregator.update_joint_state(state)
@@ -215,17 +228,19 @@ class HardwareRunner(InferenceRunnerBase):
         finally:
             span.end()
         t1 = now()
-        metrics.record_histogram_ms(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t_read) * 1e3, self._hal_attrs)
+        self._read_state_ms.record((t1 - t_read) * 1e3, self._hal_attrs)
 
         world = self.aggregator.snapshot(task=self.task)
         self._last_world = world
-        if withheld is None and world.stale_required:
+        # A required sensor counts as stale if its reader said so this tick, even when the world
+        # state still holds an older frame within its age limit.
+        if withheld is None and (world.stale_required or any(s in self._required_ids for s in stale)):
             withheld = "stale_sensor"
 
         t2 = now()
         action: Action | None = None
         if withheld is None:
-            span = tr.start_span(semconv.SPAN_SKILL_INFERENCE)
+            span = start_span(semconv.SPAN_SKILL_INFERENCE)
             token = context.attach(trace.set_span_in_context(span))
             try:
                 action = self.skill.step(world)
@@ -242,14 +257,24 @@ class HardwareRunner(InferenceRunnerBase):
         t3 = now()
         to_send: Action | None = None
         if action is not None:
-            span = tr.start_span(semconv.SPAN_SAFETY_CHECK)
+            span = start_span(semconv.SPAN_SAFETY_CHECK)
             token = context.attach(trace.set_span_in_context(span))
             try:
                 replacement = self.safety_client.check_action(action)
                 to_send = action if replacement is None else replacement
+                if span.is_recording():
+                    span.set_attributes(
+                        {
+                            semconv.ATTR_SAFETY_REQUESTED: action.first,
+                            semconv.ATTR_SAFETY_SENT: to_send.first,
+                            semconv.ATTR_SAFETY_REPLACED: replacement is not None,
+                        }
+                    )
             except ROSSafetyViolation as exc:
                 withheld = "safety"
                 violations.append(exc.check_name)
+                if span.is_recording():
+                    span.set_attribute(semconv.ATTR_SAFETY_REQUESTED, action.first)
                 self._on_violation(span, exc)
             except ROSEStopRequested as exc:
                 withheld = self._estop(exc)
@@ -261,7 +286,7 @@ class HardwareRunner(InferenceRunnerBase):
         applied = False
         if to_send is not None:
             if self._deadline_allows_send():
-                span = tr.start_span(semconv.SPAN_HAL_SEND_ACTION, attributes=self._hal_attrs)
+                span = start_span(semconv.SPAN_HAL_SEND_ACTION, attributes=self._hal_attrs)
                 try:
                     self.hal.send_action(to_send)
                     applied = True
@@ -273,9 +298,7 @@ class HardwareRunner(InferenceRunnerBase):
                     _log.warning("send_action failed", error=str(exc), tick=tick_idx)
                 finally:
                     span.end()
-                metrics.record_histogram_ms(
-                    semconv.METRIC_HAL_SEND_ACTION_DURATION, (now() - t4) * 1e3, self._hal_attrs
-                )
+                self._send_action_ms.record((now() - t4) * 1e3, self._hal_attrs)
             else:
                 withheld = "deadline"
                 trace.get_current_span().add_event(
@@ -301,7 +324,7 @@ class HardwareRunner(InferenceRunnerBase):
     def _read_synced_set(self) -> bool:
         """Read the synchronised cameras as one set; ``False`` if no set within the skew was made."""
         assert self.sync is not None
-        span = self._tracer.start_span(semconv.SPAN_SENSORS_READ_SYNCED)
+        span = self._start_phase_span(semconv.SPAN_SENSORS_READ_SYNCED)
         try:
             remaining_s = max(0.0, self._deadline_s - self._clock.now())
             timeout_s = min(self.sync.timeout_ms / 1e3, remaining_s)
@@ -343,7 +366,7 @@ class HardwareRunner(InferenceRunnerBase):
 
     def _read_sensor(self, reader: SensorReader) -> str | None:
         """Move one reader's latest frame into the world state; returns its id when stale."""
-        span = self._tracer.start_span(semconv.SPAN_SENSORS_READ)
+        span = self._start_phase_span(semconv.SPAN_SENSORS_READ)
         try:
             frame = reader.read_latest()
         except ROSPerceptionStale as exc:
@@ -357,7 +380,7 @@ class HardwareRunner(InferenceRunnerBase):
         else:
             self._accept_frame(frame)
             age_ms = frame.age_ms(self._clock.now_ns())
-            metrics.record_histogram_ms(semconv.METRIC_SENSORS_AGE, age_ms, {semconv.ATTR_SENSOR_ID: reader.sensor_id})
+            metrics.record_histogram_ms(semconv.METRIC_SENSORS_AGE, age_ms, self._sensor_attrs[reader.sensor_id])
             if span.is_recording():
                 span.set_attributes({semconv.ATTR_SENSOR_ID: reader.sensor_id, semconv.ATTR_SENSOR_AGE_MS: age_ms})
             return None
@@ -395,6 +418,18 @@ class HardwareRunner(InferenceRunnerBase):
             estop_span.end()
         self.request_stop("estop")
         return "estop"
+
+
+class _NonRecordingPhases:
+    """Stands in for ``start_span`` inside a tick that is not recorded: every phase is the tick's span."""
+
+    __slots__ = ("_span",)
+
+    def __init__(self, span: trace.Span) -> None:
+        self._span = span
+
+    def __call__(self, name: str, attributes: Any = None) -> trace.Span:
+        return self._span
 
 
 def _record_error(span: trace.Span, exc: BaseException) -> None:

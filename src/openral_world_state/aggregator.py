@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from opentelemetry import trace
 from opentelemetry.trace import Span
 from opentelemetry.util.types import Attributes
 
@@ -168,9 +169,15 @@ class WorldStateAggregator:
         negative for samples stamped on the same clock.
         """
         # The span is started without becoming current: nothing nests under it, and this is
-        # several times cheaper than ``start_as_current_span`` on the tick path.
+        # several times cheaper than ``start_as_current_span`` on the tick path. Inside a trace
+        # the sampler dropped (an unsampled tick) it could not be recorded: the enclosing
+        # non-recording span stands in, saving the span id and sampler call.
         with self._snapshot_lock:
-            span = self._tracer.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+            current = trace.get_current_span()
+            if current.is_recording() or not current.get_span_context().is_valid:
+                span = self._tracer.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+            else:
+                span = current
             try:
                 with self._lock:
                     joint_state = self._joint_state

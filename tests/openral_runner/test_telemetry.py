@@ -286,3 +286,27 @@ def test_live_status_reports_what_the_status_display_shows() -> None:
     assert status["safety_violations"] == 1
     assert status["tick_ms_p99"] >= status["tick_ms_p50"] >= 0
     assert {"deadline_misses", "missed_slots", "dropped_actions", "withheld_actions", "rate_hz"} <= set(status)
+
+
+class HalvingSafety:
+    """A clamping client: sends every action with its targets halved."""
+
+    envelope = SafetyEnvelope()
+
+    def check_action(self, action: Action) -> Action | None:
+        return action.model_copy(update={"targets": [[v / 2 for v in action.first]]})
+
+
+def test_safety_span_records_requested_and_sent(telemetry: Any) -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS, actions=rows(0.8, -0.4))
+    runner = build(clock, skill=skill, safety_client=HalvingSafety())
+    runner.run(1)
+    runner.safety_client = RejectingSafety()
+    runner.run(1)
+    clamped, rejected = telemetry.spans(semconv.SPAN_SAFETY_CHECK)
+    assert list(clamped.attributes[semconv.ATTR_SAFETY_REQUESTED]) == [0.8, 0.0, 0.0]
+    assert list(clamped.attributes[semconv.ATTR_SAFETY_SENT]) == [0.4, 0.0, 0.0]
+    assert clamped.attributes[semconv.ATTR_SAFETY_REPLACED] is True
+    assert list(rejected.attributes[semconv.ATTR_SAFETY_REQUESTED]) == [-0.4, 0.0, 0.0]
+    assert semconv.ATTR_SAFETY_SENT not in rejected.attributes

@@ -162,8 +162,11 @@ class SO10xFollowerHAL:
             bus, stack = self.bus, self._stack
             self.bus, self._stack = None, None
             if bus is not None and self.params.torque_off_on_disconnect:
-                with suppress(ROSHardwareError):
-                    bus.sync_write(Register.TORQUE_ENABLE, dict.fromkeys(self._ids, b"\x00"))
+                # Acknowledged writes, one per servo: a SYNC_WRITE gets no reply, and closing the
+                # port right after it could lose the command that makes the arm limp.
+                for servo_id in self._ids:
+                    with suppress(ROSHardwareError):
+                        bus.write(servo_id, Register.TORQUE_ENABLE, b"\x00")
             if stack is not None:
                 stack.close()
 
