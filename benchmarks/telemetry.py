@@ -5,8 +5,8 @@ client) runs at a fixed rate under three configurations, each in a fresh process
 OpenTelemetry providers can be installed only once per process:
 
 * ``off``: no SDK, the API's no-op tracer and meter (what a deployment without an endpoint gets);
-* ``memory``: SDK tracer with an in-memory exporter (``SimpleSpanProcessor``, exported on the tick
-  thread) and SDK meter with an in-memory reader;
+* ``memory``: SDK tracer with an in-memory exporter (``SimpleSpanProcessor``, exported on the
+  thread that ends a span: the runner's telemetry worker) and SDK meter with an in-memory reader;
 * ``otlp``: ``openral_observability.setup.setup()`` exporting OTLP/HTTP (batch span processor,
   periodic metric reader every second) to a receiver on 127.0.0.1 in this process, which decodes
   every request with ``opentelemetry-proto`` as a collector would;
@@ -16,8 +16,8 @@ OpenTelemetry providers can be installed only once per process:
 
 Reported per configuration (median over ``--rounds`` interleaved rounds): the tick's own wall
 time (mean, p50, p99, as the runner measures it: the cost on the tick thread), the CPU time of
-the other threads per tick (the exporters' background work), and for ``otlp`` the share of spans
-that reached the receiver. "added" is each figure minus ``off`` from the same round.
+the other threads per tick (the runner's telemetry worker and the exporters' background work),
+and for ``otlp`` the share of spans that reached the receiver. "added" is each figure minus ``off`` from the same round.
 
 Run:  uv run python benchmarks/telemetry.py [--rate 500] [--seconds 4] [--rounds 3]
 """

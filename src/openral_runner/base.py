@@ -36,6 +36,7 @@ from openral_core import (
     WorldState,
 )
 from openral_observability import metrics, semconv, trace_id_hex, traceparent, tracer
+from openral_observability.deferred import TelemetryWorker, TickTelemetry, meter_provider_records
 from openral_runner.clock import Clock, SystemClock
 from openral_runner.observer import TickObserver
 from openral_runner.stats import RollingSamples
@@ -117,6 +118,15 @@ class InferenceRunnerBase(ABC):
         self._metric_attrs = {semconv.ATTR_SKILL_ID: skill_id or runner_name}
         # A proxy tracer from the API: it follows whichever provider is installed later.
         self._tracer = tracer()
+        # Phase spans and per-tick metric samples are exported by a worker thread (see
+        # ``openral_observability.deferred``); with the API's no-op providers nothing is deferred
+        # and ``_direct`` (one object, reused) records straight to the no-op instruments.
+        self._worker = TelemetryWorker(self._tracer)
+        self._defer_metrics = False
+        self._direct = TickTelemetry(trace.INVALID_SPAN, defer_metrics=False)
+        self._telemetry = self._direct
+        self._tick_hist = metrics.histogram(semconv.METRIC_TICK_DURATION)
+        self._inference_hist = metrics.histogram(semconv.METRIC_INFERENCE_DURATION)
         self._last_late_log_s = float("-inf")
         self._late_since_log = 0
         self.metadata: dict[str, Any] = {}
@@ -137,14 +147,34 @@ class InferenceRunnerBase(ABC):
         return self._active
 
     def activate(self) -> None:
-        """Reset the tick counter and mark the runner ready to tick."""
+        """Reset the tick counter, start the telemetry worker and mark the runner ready to tick.
+
+        Whether metric samples are deferred to the worker is decided here, once: only when the
+        global meter provider is an SDK one (a capability of the OTel API objects, not a setting).
+        """
         self._tick_idx = 0
         self._stop_reason = None
+        self._defer_metrics = meter_provider_records()
+        self._worker.start()
         self._active = True
 
     def deactivate(self) -> None:
-        """Stop ticking. Idempotent."""
+        """Stop ticking and flush the telemetry worker. Idempotent."""
         self._active = False
+        self._worker.stop()
+
+    def flush_telemetry(self, timeout_s: float = 10.0) -> bool:
+        """Wait until the spans and metric samples of every tick so far are handed to the SDK.
+
+        Returns:
+            ``False`` if the worker did not catch up within ``timeout_s``.
+        """
+        return self._worker.flush(timeout_s)
+
+    @property
+    def telemetry_dropped(self) -> int:
+        """Ticks whose deferred telemetry was dropped because the worker fell behind."""
+        return self._worker.dropped
 
     def request_stop(self, reason: str = "stop_requested") -> None:
         """Ask ``run()`` to finish the current tick and return. Safe from signal handlers and threads."""
@@ -187,7 +217,16 @@ class InferenceRunnerBase(ABC):
         self._raise_pending = False
         self._lateness_ms = 0.0
         span = self._tracer.start_span(semconv.SPAN_TICK)
+        if self._defer_metrics or span.is_recording():
+            telemetry = TickTelemetry(span, defer_metrics=self._defer_metrics)
+        else:
+            telemetry = self._direct
+            telemetry.span = span
+        self._telemetry = telemetry
+        worker = self._worker
+        worker.busy = True
         token = context.attach(trace.set_span_in_context(span))
+        tick_attributes: dict[str, Any] | None = None
         try:
             result = self._tick_impl(idx)
             if not self._deadline_checked:
@@ -205,7 +244,7 @@ class InferenceRunnerBase(ABC):
                     "trace_context": traceparent(span),
                 },
             )
-            self._account(result, span)
+            tick_attributes = self._account(result, span)
             if self.observers:
                 self._notify(result)
             if self._raise_pending:
@@ -219,7 +258,10 @@ class InferenceRunnerBase(ABC):
                 raise error
         finally:
             context.detach(token)
-            span.end()
+            telemetry.end_later(span, tick_attributes)
+            if telemetry is not self._direct and telemetry.pending:
+                worker.submit(telemetry)
+            worker.busy = False
         return result
 
     def _deadline_allows_send(self) -> bool:
@@ -270,7 +312,8 @@ class InferenceRunnerBase(ABC):
             self._last_late_log_s = now
             self._late_since_log = 0
 
-    def _account(self, result: TickResult, span: Span) -> None:
+    def _account(self, result: TickResult, span: Span) -> dict[str, Any] | None:
+        """Count the tick; returns the tick span's attributes when it is recorded."""
         phases_ms = result.sensors_ms + result.world_state_ms + result.inference_ms + result.safety_ms + result.hal_ms
         self._tick_ms.add(result.tick_ms)
         self._inference_ms.add(result.inference_ms)
@@ -302,8 +345,9 @@ class InferenceRunnerBase(ABC):
         if self.latency_budget_ms is not None and result.tick_ms > self.latency_budget_ms:
             self._budget_violations += 1
             metrics.add(semconv.METRIC_BUDGET_VIOLATIONS, 1, self._metric_attrs)
-        metrics.record_histogram_ms(semconv.METRIC_TICK_DURATION, result.tick_ms, self._metric_attrs)
-        metrics.record_histogram_ms(semconv.METRIC_INFERENCE_DURATION, result.inference_ms, self._metric_attrs)
+        telemetry = self._telemetry
+        telemetry.record_ms(self._tick_hist, result.tick_ms, self._metric_attrs)
+        telemetry.record_ms(self._inference_hist, result.inference_ms, self._metric_attrs)
         if self._trace_id is None:
             self._trace_id = trace_id_hex(span)
         if span.is_recording():
@@ -333,8 +377,10 @@ class InferenceRunnerBase(ABC):
                 value = getattr(result, name)
                 if value is not None:
                     attributes[attr] = value
-            span.set_attributes(attributes)
+            self.recent_ticks.append(result)
+            return attributes
         self.recent_ticks.append(result)
+        return None
 
     # -- the loop ------------------------------------------------------------------------
 
@@ -379,6 +425,7 @@ class InferenceRunnerBase(ABC):
                 n += 1
                 self._run_t_end = clock.now()
                 exc.run_result = self._build_run_result(n, "deadline")
+                self._worker.flush()
                 raise
             n += 1
             end = clock.now()
@@ -394,6 +441,7 @@ class InferenceRunnerBase(ABC):
                     self._missed_slots += skipped
                     metrics.add(semconv.METRIC_MISSED_SLOTS, skipped, self._metric_attrs)
             slot = next_slot
+        self._worker.flush()
         return self._build_run_result(n, stop_reason)
 
     # -- results -------------------------------------------------------------------------

@@ -107,7 +107,8 @@ class HardwareRunner(InferenceRunnerBase):
         # Durations measured here are never negative: recorded on the instruments directly.
         self._read_state_ms = metrics.histogram(semconv.METRIC_HAL_READ_STATE_DURATION)
         self._send_action_ms = metrics.histogram(semconv.METRIC_HAL_SEND_ACTION_DURATION)
-        self._start_phase_span: Callable[..., trace.Span] = self._tracer.start_span
+        self._sensor_age_ms = metrics.histogram(semconv.METRIC_SENSORS_AGE)
+        self._start_phase_span: Callable[..., Any] = self._tracer.start_span
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -131,12 +132,13 @@ class HardwareRunner(InferenceRunnerBase):
                 stack.callback(self._safe_close, "thumbnails", self.thumbnails.stop)
             for observer in self.observers:
                 stack.callback(self._safe_close, f"observer {type(observer).__name__}", observer.close)
+            super().activate()  # starts the telemetry worker thread
+            stack.callback(super().deactivate)
             if self.realtime is not None:
-                # Last, so the capture and physics threads started above keep ordinary priority.
+                # Last, so the capture, physics and telemetry threads started above keep ordinary priority.
                 settings = apply_realtime(self.realtime)
                 self.metadata["realtime"] = settings.report
                 stack.callback(settings.restore)
-            super().activate()
             self._opened = stack.pop_all()
 
     def deactivate(self) -> None:
@@ -189,16 +191,19 @@ class HardwareRunner(InferenceRunnerBase):
     # -- the tick ------------------------------------------------------------------------
 
     def _tick_impl(self, tick_idx: int) -> TickResult:
-        # Phase spans are started as children of the current tick span without being made
-        # current themselves (``start_span`` costs a tenth of ``start_as_current_span``); only
-        # the inference span becomes current, so spans a skill opens nest under it. A tick the
-        # sampler did not record gets no phase spans: they could not be recorded either, and each
-        # would still cost a span id and a sampler call. Its phases (and a skill's spans) use the
-        # tick's own non-recording span instead, which keeps them in the tick's unsampled trace.
+        # Only the spans user code runs under are live on the tick thread: ``skill.chunk_inference``
+        # (spans a skill opens nest under it) and ``safety.check`` (likewise for a safety client,
+        # and the e-stop span). The other phases (sensor reads, state read, world-state snapshot,
+        # send) are recorded as plain data and exported by the telemetry worker with their
+        # recorded times under the tick span (``openral_observability.deferred``). A tick the
+        # sampler did not record gets no phase spans at all: its phases (and a skill's spans) use
+        # the tick's own non-recording span, which keeps them in the tick's unsampled trace.
         now = self._clock.now
-        tick_span = trace.get_current_span()
-        start_span: Callable[..., trace.Span] = (
-            self._tracer.start_span if tick_span.is_recording() else _NonRecordingPhases(tick_span)
+        telemetry = self._telemetry
+        tick_span = telemetry.span
+        start_span = telemetry.start_span
+        live_span: Callable[..., Any] = (
+            self._tracer.start_span if telemetry.record_spans else _NonRecordingPhases(tick_span)
         )
         self._start_phase_span = start_span
         withheld: str | None = None
@@ -228,9 +233,9 @@ class HardwareRunner(InferenceRunnerBase):
         finally:
             span.end()
         t1 = now()
-        self._read_state_ms.record((t1 - t_read) * 1e3, self._hal_attrs)
+        telemetry.record(self._read_state_ms, (t1 - t_read) * 1e3, self._hal_attrs)
 
-        world = self.aggregator.snapshot(task=self.task)
+        world = self.aggregator.snapshot(task=self.task, telemetry=telemetry)
         self._last_world = world
         # A required sensor counts as stale if its reader said so this tick, even when the world
         # state still holds an older frame within its age limit.
@@ -240,7 +245,7 @@ class HardwareRunner(InferenceRunnerBase):
         t2 = now()
         action: Action | None = None
         if withheld is None:
-            span = start_span(semconv.SPAN_SKILL_INFERENCE)
+            span = live_span(semconv.SPAN_SKILL_INFERENCE)
             token = context.attach(trace.set_span_in_context(span))
             try:
                 action = self.skill.step(world)
@@ -252,12 +257,12 @@ class HardwareRunner(InferenceRunnerBase):
                 _log.warning("skill step failed", error=str(exc), tick=tick_idx)
             finally:
                 context.detach(token)
-                span.end()
+                telemetry.end_later(span)
 
         t3 = now()
         to_send: Action | None = None
         if action is not None:
-            span = start_span(semconv.SPAN_SAFETY_CHECK)
+            span = live_span(semconv.SPAN_SAFETY_CHECK)
             token = context.attach(trace.set_span_in_context(span))
             try:
                 replacement = self.safety_client.check_action(action)
@@ -280,7 +285,7 @@ class HardwareRunner(InferenceRunnerBase):
                 withheld = self._estop(exc)
             finally:
                 context.detach(token)
-                span.end()
+                telemetry.end_later(span)
 
         t4 = now()
         applied = False
@@ -298,7 +303,7 @@ class HardwareRunner(InferenceRunnerBase):
                     _log.warning("send_action failed", error=str(exc), tick=tick_idx)
                 finally:
                     span.end()
-                self._send_action_ms.record((now() - t4) * 1e3, self._hal_attrs)
+                telemetry.record(self._send_action_ms, (now() - t4) * 1e3, self._hal_attrs)
             else:
                 withheld = "deadline"
                 trace.get_current_span().add_event(
@@ -349,8 +354,8 @@ class HardwareRunner(InferenceRunnerBase):
             now_ns = self._clock.now_ns()
             for frame in frames.values():
                 self._accept_frame(frame)
-                metrics.record_histogram_ms(
-                    semconv.METRIC_SENSORS_AGE, frame.age_ms(now_ns), {semconv.ATTR_SENSOR_ID: frame.sensor_id}
+                self._telemetry.record_ms(
+                    self._sensor_age_ms, frame.age_ms(now_ns), self._sensor_attrs[frame.sensor_id]
                 )
             return True
         finally:
@@ -380,7 +385,7 @@ class HardwareRunner(InferenceRunnerBase):
         else:
             self._accept_frame(frame)
             age_ms = frame.age_ms(self._clock.now_ns())
-            metrics.record_histogram_ms(semconv.METRIC_SENSORS_AGE, age_ms, self._sensor_attrs[reader.sensor_id])
+            self._telemetry.record_ms(self._sensor_age_ms, age_ms, self._sensor_attrs[reader.sensor_id])
             if span.is_recording():
                 span.set_attributes({semconv.ATTR_SENSOR_ID: reader.sensor_id, semconv.ATTR_SENSOR_AGE_MS: age_ms})
             return None
@@ -389,7 +394,7 @@ class HardwareRunner(InferenceRunnerBase):
 
     # -- fault handling ------------------------------------------------------------------
 
-    def _on_stale(self, span: trace.Span, exc: ROSPerceptionStale) -> None:
+    def _on_stale(self, span: Any, exc: ROSPerceptionStale) -> None:
         attrs: dict[str, Any] = {semconv.ATTR_SENSOR_ID: exc.sensor_id}
         if exc.age_ms is not None:
             attrs[semconv.ATTR_SENSOR_AGE_MS] = exc.age_ms
@@ -432,6 +437,6 @@ class _NonRecordingPhases:
         return self._span
 
 
-def _record_error(span: trace.Span, exc: BaseException) -> None:
+def _record_error(span: Any, exc: BaseException) -> None:
     span.record_exception(exc)
     span.set_status(Status(StatusCode.ERROR, str(exc)))

@@ -6,9 +6,9 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from opentelemetry import trace
-from opentelemetry.trace import Span
 from opentelemetry.util.types import Attributes
 
 from openral_core import (
@@ -20,6 +20,7 @@ from openral_core import (
     WorldState,
 )
 from openral_observability import metrics, semconv
+from openral_observability.deferred import TickTelemetry
 from openral_observability.tracing import tracer
 
 JOINT_STATE_COMPONENT = "joint_state"
@@ -101,6 +102,7 @@ class WorldStateAggregator:
         self._has_sensors = bool(self._sensor_ids)
         self._clock = clock
         self._tracer = tracer()  # the API's proxy tracer follows a provider installed later
+        self._staleness_ms = metrics.histogram(semconv.METRIC_WORLD_STATE_STALENESS)
         self._lock = threading.Lock()
         self._snapshot_lock = threading.Lock()
         self._joint_state: JointState | None = None
@@ -160,24 +162,32 @@ class WorldStateAggregator:
         with self._lock:
             self._errors.pop(component, None)
 
-    def snapshot(self, *, task: str | None = None) -> WorldState:
+    def snapshot(self, *, task: str | None = None, telemetry: TickTelemetry | None = None) -> WorldState:
         """A ``WorldState`` of the latest samples with diagnostics for every declared component.
 
         ``image_frames`` holds the very frame objects passed to :meth:`update_frame` (no copy),
         only for sensors that delivered one; it is ``None`` when no sensors are declared.
         ``stamp_ns`` is ``clock()`` read after the samples were taken, so ages are never
         negative for samples stamped on the same clock.
+
+        With ``telemetry`` (a runner's tick), the ``world_state.snapshot`` span and the staleness
+        samples are recorded into it and exported off the calling thread; without it the span is
+        started here, under the current span.
         """
         # The span is started without becoming current: nothing nests under it, and this is
         # several times cheaper than ``start_as_current_span`` on the tick path. Inside a trace
         # the sampler dropped (an unsampled tick) it could not be recorded: the enclosing
         # non-recording span stands in, saving the span id and sampler call.
         with self._snapshot_lock:
-            current = trace.get_current_span()
-            if current.is_recording() or not current.get_span_context().is_valid:
-                span = self._tracer.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+            span: Any
+            if telemetry is not None:
+                span = telemetry.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
             else:
-                span = current
+                current = trace.get_current_span()
+                if current.is_recording() or not current.get_span_context().is_valid:
+                    span = self._tracer.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+                else:
+                    span = current
             try:
                 with self._lock:
                     joint_state = self._joint_state
@@ -191,7 +201,9 @@ class WorldStateAggregator:
                     else:
                         frame = frames.get(component.name)
                         stamp_ns = None if frame is None else frame.stamp_ns
-                    diagnostics[component.name] = self._diagnose(component, stamp_ns, now_ns, errors, span)
+                    diagnostics[component.name] = self._diagnose(
+                        component, stamp_ns, now_ns, errors, span, telemetry=telemetry
+                    )
                 # Plain (validated) construction: pydantic-core checks these flat fields faster than
                 # ``model_construct`` builds them, and nested model instances pass through unvalidated and uncopied.
                 return WorldState(
@@ -210,7 +222,9 @@ class WorldStateAggregator:
         stamp_ns: int | None,
         now_ns: int,
         errors: dict[str, str] | None,
-        span: Span,
+        span: Any,
+        *,
+        telemetry: TickTelemetry | None,
     ) -> ComponentDiagnostics:
         limit = component.max_age_ms
         if stamp_ns is None:
@@ -219,7 +233,10 @@ class WorldStateAggregator:
         else:
             age_ms = (now_ns - stamp_ns) / 1e6
             stale = age_ms > limit or age_ms < -limit
-            metrics.record_histogram_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
+            if telemetry is None:
+                metrics.record_histogram_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
+            else:
+                telemetry.record_ms(self._staleness_ms, age_ms, component.attributes)
         error = errors.get(component.name) if errors else None
 
         if stale and not component.stale_latched:

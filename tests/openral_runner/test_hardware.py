@@ -402,3 +402,24 @@ def test_observers_see_every_tick_and_a_failing_one_is_detached() -> None:
     assert broken not in runner.observers
     runner.deactivate()
     assert good.closed == 1
+
+
+def test_background_threads_keep_ordinary_scheduling_under_realtime_knobs() -> None:
+    import os  # noqa: PLC0415
+    import threading  # noqa: PLC0415
+
+    from openral_core import RealtimeConfig  # noqa: PLC0415
+
+    clock = FakeClock()
+    runner, _, _ = build(clock, realtime=RealtimeConfig(sched_fifo_priority=5))
+    runner.activate()
+    try:
+        if runner.metadata["realtime"]["sched_fifo_priority"] != "applied":
+            pytest.skip("SCHED_FIFO not permitted here (needs root or CAP_SYS_NICE); CI runs as root")
+        assert os.sched_getscheduler(0) == os.SCHED_FIFO
+        workers = [t for t in threading.enumerate() if t.name == "openral-telemetry"]
+        assert workers
+        assert all(os.sched_getscheduler(t.native_id) == os.SCHED_OTHER for t in workers)
+    finally:
+        runner.deactivate()
+    assert os.sched_getscheduler(0) != os.SCHED_FIFO

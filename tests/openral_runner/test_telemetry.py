@@ -11,6 +11,7 @@ from openral_core import (
     Action,
     DeadlineOverrunPolicy,
     ROSEStopRequested,
+    ROSHardwareError,
     ROSSafetyViolation,
     SafetyEnvelope,
     SensorReaderConfig,
@@ -310,3 +311,74 @@ def test_safety_span_records_requested_and_sent(telemetry: Any) -> None:
     assert clamped.attributes[semconv.ATTR_SAFETY_REPLACED] is True
     assert list(rejected.attributes[semconv.ATTR_SAFETY_REQUESTED]) == [-0.4, 0.0, 0.0]
     assert semconv.ATTR_SAFETY_SENT not in rejected.attributes
+
+
+def test_deferred_phase_spans_are_children_of_their_tick_and_inside_it(telemetry: Any) -> None:
+    clock = FakeClock()
+    wrist = ScriptedReader("wrist-deferred-test", clock, age_ms=500.0, max_age_ms=100.0)
+    runner = build(clock, readers=[ScriptedReader("front", clock), wrist], sensors_required=False)
+    runner.tick()
+    runner.tick()
+    assert runner.flush_telemetry()
+    ticks = {t.context.span_id: t for t in telemetry.spans(semconv.SPAN_TICK)}
+    assert len(ticks) == 2
+    deferred = {
+        semconv.SPAN_SENSORS_READ,
+        semconv.SPAN_HAL_READ_STATE,
+        semconv.SPAN_WORLD_STATE_SNAPSHOT,
+        semconv.SPAN_HAL_SEND_ACTION,
+    }
+    seen = 0
+    for span in telemetry.spans():
+        if span.name not in deferred:
+            continue
+        seen += 1
+        tick = ticks[span.parent.span_id]
+        assert span.context.trace_id == tick.context.trace_id
+        assert tick.start_time <= span.start_time <= span.end_time <= tick.end_time
+    assert seen == 2 * (len(deferred) + 1)  # two readers per tick
+    # Events are replayed with the time they happened, inside their span.
+    stale = events(telemetry.spans(semconv.SPAN_SENSORS_READ), semconv.EVENT_SENSOR_STALE)
+    assert len(stale) == 2
+    for span, event in stale:
+        assert span.start_time <= event.timestamp <= span.end_time
+        assert event.attributes[semconv.ATTR_SENSOR_ID] == "wrist-deferred-test"
+    (latched,) = events(telemetry.spans(semconv.SPAN_WORLD_STATE_SNAPSHOT), semconv.EVENT_STALENESS_LATCHED)
+    assert latched[0].start_time <= latched[1].timestamp <= latched[0].end_time
+
+
+def test_a_phase_error_is_replayed_as_an_exception_and_an_error_status(telemetry: Any) -> None:
+    class FailingHAL(RecordingHAL):
+        def send_action(self, action: Action) -> None:
+            raise ROSHardwareError("bus down")
+
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS)
+    skill.configure()
+    skill.activate()
+    runner = HardwareRunner(
+        hal=FailingHAL(JOINTS, clock_ns=clock.now_ns),
+        skill=skill,
+        aggregator=WorldStateAggregator(joint_max_age_ms=100.0, clock=clock.now_ns),
+        rate_hz=RATE,
+        clock=clock,
+    )
+    runner.activate()
+    runner.run(1)
+    (send,) = telemetry.spans(semconv.SPAN_HAL_SEND_ACTION)
+    assert send.status.status_code is trace.StatusCode.ERROR
+    (exception,) = send.events
+    assert exception.name == "exception"
+    assert "bus down" in exception.attributes["exception.message"]
+    assert send.start_time <= exception.timestamp <= send.end_time
+    runner.deactivate()
+
+
+def test_metrics_are_recorded_for_ticks_the_sampler_dropped(telemetry: Any) -> None:
+    runner = build(FakeClock(), skill_id="unsampled-metrics")
+    with trace.use_span(trace.NonRecordingSpan(trace.SpanContext(1, 2, is_remote=True))):
+        # A non-sampled parent: the default ParentBased sampler drops every tick.
+        runner.run(3)
+    assert telemetry.spans(semconv.SPAN_TICK) == []
+    assert telemetry.metric(semconv.METRIC_TICK_DURATION, **{semconv.ATTR_SKILL_ID: "unsampled-metrics"}) == 3
+    assert telemetry.metric(semconv.METRIC_HAL_READ_STATE_DURATION) == 3
