@@ -185,6 +185,10 @@ class InferenceRunnerBase(ABC):
     def _tick_impl(self, tick_idx: int) -> TickResult:
         """Run one tick's phases; call ``_deadline_allows_send()`` right before actuating."""
 
+    def _schedule_origin(self) -> float:
+        """When slot 0 of ``run()`` starts (scheduling clock); subclasses may choose a phase. Now by default."""
+        return self._clock.now()
+
     def _should_terminate(self) -> bool:
         """Subclass hook consulted after each tick; ``True`` ends ``run()`` (``stop_reason="terminated"``)."""
         return False
@@ -397,7 +401,7 @@ class InferenceRunnerBase(ABC):
         self._reset_counters()
         clock = self._clock
         period = self.period_s
-        t0 = clock.now()
+        t0 = self._schedule_origin()
         self._run_t0 = t0
         end_limit = None if duration_s is None else t0 + duration_s
         slot = 0

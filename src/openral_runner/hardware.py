@@ -42,6 +42,9 @@ from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
 
+_PHASE_MARGIN_S = 0.002
+"""Slack between a camera frame's arrival and the tick that reads it, for capture-thread jitter."""
+
 
 class HardwareRunner(InferenceRunnerBase):
     """Closes the loop on a robot (or its twin).
@@ -154,6 +157,28 @@ class HardwareRunner(InferenceRunnerBase):
             close()
         except Exception as exc:  # a failing close must not stop the others from closing
             _log.warning("close failed", component=what, error=str(exc))
+
+    # -- schedule phase --------------------------------------------------------------------
+
+    def _schedule_origin(self) -> float:
+        """Start the schedule just after a frame of the first required camera arrives.
+
+        A camera and a tick at the same rate lock their phases; started at a random instant the
+        tick would often read each frame almost a full period old. Starting slot 0 right after a
+        capture (plus a small margin for publish jitter) keeps the frames the skill sees fresh.
+        Without a camera, or if none delivers within two periods, the schedule starts now.
+        """
+        now = self._clock.now()
+        reader = next((r for r in self.sensor_readers if r.sensor_id in self._required_ids), None)
+        if reader is None:
+            return now
+        try:
+            latest = reader.read_latest(float("inf")).stamp_ns
+            wait_ns = int(2 * self.period_s * 1e9)
+            reader.read_synced(self._clock.now_ns() + wait_ns, newer_than_ns=latest)
+        except ROSError:
+            return self._clock.now()
+        return self._clock.now() + min(_PHASE_MARGIN_S, self.period_s / 4)
 
     # -- episodes ------------------------------------------------------------------------
 

@@ -298,19 +298,19 @@ def test_hal_send_failure_is_a_fault_not_a_crash() -> None:
 def test_transient_reader_error_clears_on_the_next_good_frame() -> None:
     clock = FakeClock()
     cam = ScriptedReader("cam", clock)
-    failures = iter([ROSHardwareError("USB reset")])
-
-    def fail_once() -> None:
-        exc = next(failures, None)
-        if exc is not None:
-            raise exc
-
-    cam.on_read = fail_once
     runner, hal, skill = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="cam")])
+    failed = []
+
+    def fail_during_tick_one() -> None:
+        if len(runner.recent_ticks) == 1 and not failed:
+            failed.append(True)
+            raise ROSHardwareError("USB reset")
+
+    cam.on_read = fail_during_tick_one
     runner.activate()
     result = runner.run(4)
     reasons = [t.withheld_reason for t in runner.recent_ticks]
-    assert reasons == ["stale_sensor", None, None, None]
+    assert reasons == [None, "stale_sensor", None, None]
     assert len(hal.sent) == 3
     assert result.failed_ticks == 1
     assert skill.seen[-1].diagnostics["cam"].healthy
@@ -423,3 +423,32 @@ def test_background_threads_keep_ordinary_scheduling_under_realtime_knobs() -> N
     finally:
         runner.deactivate()
     assert os.sched_getscheduler(0) != os.SCHED_FIFO
+
+
+def test_schedule_starts_just_after_a_camera_frame() -> None:
+    class GridCamera(ScriptedReader):
+        """Captures exactly every 33.3 ms of fake time; serves the latest captured frame."""
+
+        period_ns = 33_333_333
+
+        def _latest_stamp(self) -> int:
+            return self.clock.now_ns() // self.period_ns * self.period_ns
+
+        def read_latest(self, max_age_ms: float | None = None):
+            frame = super().read_latest(float("inf"))
+            return frame.model_copy(update={"stamp_ns": self._latest_stamp()})
+
+        def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0):
+            self.clock.sleep_until((newer_than_ns // self.period_ns + 1) * self.period_ns / 1e9)
+            return self.read_latest()
+
+    clock = FakeClock(start_s=100.0)
+    clock.advance(0.020)  # the run starts 20 ms into a camera period
+    cam = GridCamera("cam", clock)
+    runner, _, skill = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="cam")])
+    runner.activate()
+    runner.run(3)
+    for world in skill.seen:
+        assert world.image_frames is not None
+        age_ms = (world.stamp_ns - world.image_frames["cam"].stamp_ns) / 1e6
+        assert 0 <= age_ms <= 3.0  # read ~2 ms after its capture, not most of a period later
