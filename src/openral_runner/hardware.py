@@ -111,7 +111,6 @@ class HardwareRunner(InferenceRunnerBase):
         self._read_state_ms = metrics.histogram(semconv.METRIC_HAL_READ_STATE_DURATION)
         self._send_action_ms = metrics.histogram(semconv.METRIC_HAL_SEND_ACTION_DURATION)
         self._sensor_age_ms = metrics.histogram(semconv.METRIC_SENSORS_AGE)
-        self._start_phase_span: Callable[..., Any] = self._tracer.start_span
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -225,12 +224,9 @@ class HardwareRunner(InferenceRunnerBase):
         # the tick's own non-recording span, which keeps them in the tick's unsampled trace.
         now = self._clock.now
         telemetry = self._telemetry
-        tick_span = telemetry.span
         start_span = telemetry.start_span
-        live_span: Callable[..., Any] = (
-            self._tracer.start_span if telemetry.record_spans else _NonRecordingPhases(tick_span)
-        )
-        self._start_phase_span = start_span
+        # Outside a recorded tick ``telemetry.start_span`` hands back the tick's own span.
+        live_span: Callable[..., Any] = self._tracer.start_span if telemetry.record_spans else start_span
         withheld: str | None = None
         stale: list[str] = []
         violations: list[str] = []
@@ -354,7 +350,7 @@ class HardwareRunner(InferenceRunnerBase):
     def _read_synced_set(self) -> bool:
         """Read the synchronised cameras as one set; ``False`` if no set within the skew was made."""
         assert self.sync is not None
-        span = self._start_phase_span(semconv.SPAN_SENSORS_READ_SYNCED)
+        span = self._telemetry.start_span(semconv.SPAN_SENSORS_READ_SYNCED)
         try:
             remaining_s = max(0.0, self._deadline_s - self._clock.now())
             timeout_s = min(self.sync.timeout_ms / 1e3, remaining_s)
@@ -396,7 +392,7 @@ class HardwareRunner(InferenceRunnerBase):
 
     def _read_sensor(self, reader: SensorReader) -> str | None:
         """Move one reader's latest frame into the world state; returns its id when stale."""
-        span = self._start_phase_span(semconv.SPAN_SENSORS_READ)
+        span = self._telemetry.start_span(semconv.SPAN_SENSORS_READ)
         try:
             frame = reader.read_latest()
         except ROSPerceptionStale as exc:
@@ -448,18 +444,6 @@ class HardwareRunner(InferenceRunnerBase):
             estop_span.end()
         self.request_stop("estop")
         return "estop"
-
-
-class _NonRecordingPhases:
-    """Stands in for ``start_span`` inside a tick that is not recorded: every phase is the tick's span."""
-
-    __slots__ = ("_span",)
-
-    def __init__(self, span: trace.Span) -> None:
-        self._span = span
-
-    def __call__(self, name: str, attributes: Any = None) -> trace.Span:
-        return self._span
 
 
 def _record_error(span: Any, exc: BaseException) -> None:
