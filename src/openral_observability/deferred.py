@@ -1,19 +1,18 @@
-"""Deferred telemetry: phase spans and metric samples recorded as plain data, exported off the tick thread.
+"""Deferred telemetry: a tick's spans and metric samples recorded as plain data, exported off the tick thread.
 
-A recorded SDK span costs the tick thread about ten microseconds and a histogram record about
-five. The tick thread instead records each phase as a :class:`DeferredSpan` (name, wall-clock
-start and end, attributes, events, status) and each metric sample as a tuple into one
-:class:`TickTelemetry` per tick; at the end of the tick the batch goes to a
-:class:`TelemetryWorker`, which creates the real spans with their recorded times under the tick
-span and records the samples. The live spans of a tick (the tick span itself, and those user code
-runs under) are ended by the worker too, at the end time the tick thread recorded, after it has
-set their final attributes: ending a span is where the SDK hands it to its processors. The
-exported spans carry the same names, parents, times, attributes and events as spans started and
-ended on the tick thread would.
+With an SDK tracer installed (see :mod:`openral_observability.span_pipeline`), the tick thread
+makes no SDK span calls at all. Each span of a tick, the tick span included, is a
+:class:`DeferredSpan`: a real ``opentelemetry.trace.Span`` that records its name, wall-clock
+times, attributes, events and status into the tick's batch. The tick span's id is assigned up
+front (``TickResult.trace_context`` and child spans need it). A phase span gets its id only
+when something asks for it: the span user code runs under, as the parent of that code's own SDK
+spans. Otherwise the worker assigns it. Metric samples are queued as
+``(record, value, attributes)`` tuples when the meter provider is an SDK one. At the end of the
+tick the batch goes to a :class:`TelemetryWorker`, which hands the spans to the span
+processors and records the samples.
 
-Whether anything is deferred is a capability of the installed OpenTelemetry API objects, checked
-once (:func:`meter_provider_records`): with the API's no-op providers, metric samples are
-recorded directly (a no-op call) and phase spans are the tick's own non-recording span.
+Without an SDK tracer (the API's no-op provider, or another implementation), ticks use the API's
+own spans: non-recording and nearly free under the no-op provider, live and exact under any other.
 """
 
 from __future__ import annotations
@@ -23,13 +22,16 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any, Final
+from typing import Any, Final, Protocol
 
 import structlog
-from opentelemetry import metrics, trace
-from opentelemetry.metrics import Histogram
-from opentelemetry.trace import Span, Status, StatusCode, Tracer
+from opentelemetry import context, metrics, trace
+from opentelemetry.trace import NonRecordingSpan, Span, SpanContext, Status, StatusCode, TraceFlags
 from opentelemetry.util.types import Attributes
+
+from openral_observability.metrics import histogram
+from openral_observability.semconv import SPAN_TICK, TRACER_NAME
+from openral_observability.span_pipeline import SdkSpanPipeline, SpanRecord, exception_attributes
 
 _log = structlog.get_logger(__name__)
 
@@ -37,6 +39,10 @@ _time_ns: Final = time.time_ns
 _QUEUE_TICKS: Final = 4096
 _WAIT_S: Final = 50e-6
 _MAX_WAITS: Final = 200  # about 10 ms: a tick that long must not stall export for good
+_SAMPLED: Final = int(TraceFlags.SAMPLED)
+
+MetricSample = tuple[str, float, Attributes]
+"""``(histogram name, value, attributes)``: one sample of a millisecond histogram."""
 
 
 def meter_provider_records() -> bool:
@@ -44,27 +50,66 @@ def meter_provider_records() -> bool:
     return not type(metrics.get_meter_provider()).__module__.startswith("opentelemetry.metrics")
 
 
-class DeferredSpan:
-    """A phase span recorded as data; the subset of the ``Span`` API that phase code uses.
+class DeferredSpan(Span):
+    """A span recorded as data on the tick thread and handed to the span processors by the worker.
 
     ``attributes`` passed in are shared, not copied, until the span sets its own.
+
+    Args:
+        sink: The tick's list of finished spans; :meth:`end` appends to it.
+        name: Span name.
+        parent: The parent's context (``None`` for a root span).
+        attributes: Start attributes.
+        span_context: This span's context, when it must be fixed now; otherwise it is made on first
+            use from ``parent`` with an id from ``new_id``.
+        new_id: Span id generator for the lazily made context.
     """
 
-    __slots__ = ("_own", "_sink", "attributes", "end_ns", "events", "name", "start_ns", "status")
+    # Class-level defaults: a phase span is created on the tick thread, so its constructor sets
+    # only what every span has.
+    _own = False
+    events: list[tuple[str, Attributes, int, BaseException | None]] | None = None
+    status: Status | None = None
+    end_ns = 0
 
-    def __init__(self, sink: list[DeferredSpan], name: str, attributes: Attributes = None) -> None:
+    def __init__(
+        self,
+        sink: list[DeferredSpan],
+        name: str,
+        parent: SpanContext | None,
+        attributes: Attributes = None,
+        *,
+        span_context: SpanContext | None = None,
+        new_id: Callable[[], int] | None = None,
+    ) -> None:
         self._sink = sink
         self.name = name
+        self.parent = parent
         self.attributes: Attributes = attributes
-        self._own = False
-        self.events: list[tuple[str, Attributes, int, BaseException | None]] | None = None
-        self.status: Status | None = None
-        self.end_ns = 0
+        self._context = span_context
+        self._new_id = new_id
         self.start_ns = _time_ns()
 
+    def get_span_context(self) -> SpanContext:
+        """This span's context: a child of ``parent`` in its trace, with the parent's flags."""
+        ctx = self._context
+        if ctx is None:
+            parent = self.parent
+            if parent is None or self._new_id is None:
+                raise RuntimeError(f"deferred span {self.name!r} has neither a context nor a parent to derive one from")
+            ctx = SpanContext(
+                parent.trace_id,
+                self._new_id(),
+                is_remote=False,
+                trace_flags=parent.trace_flags,
+                trace_state=parent.trace_state,
+            )
+            self._context = ctx
+        return ctx
+
     def is_recording(self) -> bool:
-        """Always ``True``: a deferred span exists only inside a recorded tick."""
-        return True
+        """``True`` until :meth:`end`."""
+        return not self.end_ns
 
     def _mutable(self) -> dict[str, Any]:
         if not self._own:
@@ -73,12 +118,22 @@ class DeferredSpan:
         return self.attributes  # type: ignore[return-value]
 
     def set_attribute(self, key: str, value: Any) -> None:
-        """Set one attribute."""
-        self._mutable()[key] = value
+        """Set one attribute (ignored once ended, as the SDK does)."""
+        if not self.end_ns:
+            self._mutable()[key] = value
 
-    def set_attributes(self, attributes: dict[str, Any]) -> None:
-        """Set several attributes."""
-        self._mutable().update(attributes)
+    def set_attributes(self, attributes: Any) -> None:
+        """Set several attributes (ignored once ended)."""
+        if not self.end_ns:
+            self._mutable().update(attributes)
+
+    def adopt_attributes(self, attributes: dict[str, Any]) -> None:
+        """Set ``attributes``, taking ownership of the dict (no copy when the span has none yet)."""
+        if self.attributes is None and not self.end_ns:
+            self.attributes = attributes
+            self._own = True
+        else:
+            self.set_attributes(attributes)
 
     def add_event(self, name: str, attributes: Attributes = None, timestamp: int | None = None) -> None:
         """Record an event, stamped now unless ``timestamp`` (ns since the epoch) is given."""
@@ -86,72 +141,169 @@ class DeferredSpan:
             self.events = []
         self.events.append((name, attributes, _time_ns() if timestamp is None else timestamp, None))
 
-    def record_exception(self, exception: BaseException, attributes: Attributes = None) -> None:
-        """Record ``exception``; the worker replays it with ``Span.record_exception`` at this time."""
+    def record_exception(
+        self,
+        exception: BaseException,
+        attributes: Attributes = None,
+        timestamp: int | None = None,
+        escaped: bool = False,
+    ) -> None:
+        """Record ``exception``; the worker writes the SDK's ``exception.*`` attributes and formats the stack."""
         if self.events is None:
             self.events = []
-        self.events.append(("exception", attributes, _time_ns(), exception))
+        self.events.append(("exception", attributes, _time_ns() if timestamp is None else timestamp, exception))
 
     def set_status(self, status: Status | StatusCode, description: str | None = None) -> None:
         """Set the span's status."""
         self.status = status if isinstance(status, Status) else Status(status, description)
 
+    def update_name(self, name: str) -> None:
+        """Rename the span."""
+        self.name = name
+
     def end(self, end_time: int | None = None) -> None:
-        """Stamp the end and hand the span to its tick's batch."""
+        """Stamp the end and hand the span to its tick's batch. Only the first call counts."""
+        if self.end_ns:
+            return
         self.end_ns = _time_ns() if end_time is None else end_time
         self._sink.append(self)
 
+    def to_record(self) -> SpanRecord:
+        """This finished span as plain data; exceptions become the SDK's ``exception`` event attributes."""
+        ctx = self.get_span_context()
+        parent = self.parent
+        events: list[tuple[str, Attributes, int]] = []
+        for name, attributes, at, exception in self.events or ():
+            events.append((name, attributes if exception is None else exception_attributes(exception, attributes), at))
+        status = self.status
+        return SpanRecord(
+            self.name,
+            ctx.trace_id,
+            ctx.span_id,
+            int(ctx.trace_flags),
+            ctx.trace_state.to_header() if ctx.trace_state else None,
+            None if parent is None else parent.span_id,
+            False if parent is None else parent.is_remote,
+            self.start_ns,
+            self.end_ns,
+            self.attributes,
+            events,
+            StatusCode.UNSET.value if status is None else status.status_code.value,
+            None if status is None else status.description,
+        )
+
 
 class TickTelemetry:
-    """One tick's deferred phase spans and metric samples.
+    """One tick's span, its deferred spans and its metric samples.
 
     Args:
-        span: The tick span; phases of a tick it does not record use it instead of a span of their own.
+        span: The tick span.
         defer_metrics: Queue metric samples for the worker rather than recording them now.
+        start_span: Makes a child span of the tick (deferred or live); ``None`` when the tick is
+            not recorded, and its phases use the tick's own non-recording span.
+        spans: The list deferred spans append themselves to when they end.
     """
 
-    __slots__ = ("defer_metrics", "ends", "record_spans", "samples", "span", "spans")
+    __slots__ = ("_start_span", "defer_metrics", "samples", "span", "spans")
 
-    def __init__(self, span: Span, *, defer_metrics: bool) -> None:
+    def __init__(
+        self,
+        span: Span,
+        *,
+        defer_metrics: bool,
+        start_span: Callable[[str, Attributes], Span] | None = None,
+        spans: list[DeferredSpan] | None = None,
+    ) -> None:
         self.span = span
-        self.record_spans = span.is_recording()
         self.defer_metrics = defer_metrics
-        self.spans: list[DeferredSpan] = []
-        self.ends: list[tuple[Span, int, Attributes]] = []
-        self.samples: list[tuple[Callable[[float, Attributes], None], float, Attributes]] = []
+        self._start_span = start_span
+        self.spans: list[DeferredSpan] = [] if spans is None else spans
+        self.samples: list[MetricSample] = []
 
-    def start_span(self, name: str, attributes: Attributes = None) -> Any:
-        """A deferred phase span under the tick span, or the tick's span when it is not recorded."""
-        if self.record_spans:
-            return DeferredSpan(self.spans, name, attributes)
-        return self.span
+    @property
+    def record_spans(self) -> bool:
+        """Whether this tick's phases get spans of their own."""
+        return self._start_span is not None
 
-    def end_later(self, span: Span, attributes: Attributes = None) -> None:
-        """End a live span now as far as its times go; its ``attributes`` are set and it is ended by the worker.
+    def start_span(self, name: str, attributes: Attributes = None) -> Span:
+        """A child span of the tick, or the tick's own span when the tick is not recorded."""
+        start = self._start_span
+        return self.span if start is None else start(name, attributes)
 
-        In a tick that is not recorded the span is ended at once (``attributes`` would not be kept).
-        """
-        if self.record_spans:
-            self.ends.append((span, _time_ns(), attributes))
-        else:
-            span.end()
+    def finish(self, attributes: dict[str, Any] | None = None) -> None:
+        """End the tick span with its final ``attributes`` (a dict the span may keep)."""
+        span = self.span
+        if attributes:
+            if isinstance(span, DeferredSpan):
+                span.adopt_attributes(attributes)
+            elif span.is_recording():
+                span.set_attributes(attributes)
+        span.end()
 
-    def record(self, histogram: Histogram, value: float, attributes: Attributes = None) -> None:
-        """Record a histogram sample (now, or on the worker when metrics are deferred)."""
+    def record(self, name: str, value: float, attributes: Attributes = None) -> None:
+        """Record a sample of the millisecond histogram ``name`` (now, or on the worker when metrics are deferred)."""
         if self.defer_metrics:
-            self.samples.append((histogram.record, value, attributes))
+            self.samples.append((name, value, attributes))
         else:
-            histogram.record(value, attributes)
+            histogram(name).record(value, attributes)
 
-    def record_ms(self, histogram: Histogram, value_ms: float, attributes: Attributes = None) -> None:
+    def record_ms(self, name: str, value_ms: float, attributes: Attributes = None) -> None:
         """Like :meth:`record`, dropping negative and non-finite durations."""
         if value_ms >= 0.0 and math.isfinite(value_ms):
-            self.record(histogram, value_ms, attributes)
+            self.record(name, value_ms, attributes)
 
     @property
     def pending(self) -> bool:
         """Whether the worker has anything to do for this tick."""
-        return bool(self.spans or self.samples or self.ends)
+        return bool(self.spans or self.samples)
+
+
+class TelemetrySink(Protocol):
+    """Where the worker hands each tick's finished spans and metric samples."""
+
+    def export(self, spans: list[SpanRecord], samples: list[MetricSample]) -> None:
+        """Export one tick's spans and samples (or buffer them until :meth:`flush`)."""
+        ...
+
+    def flush(self, *, force: bool) -> None:
+        """Called whenever the worker has emptied its queue: send what is buffered (all of it when ``force``)."""
+        ...
+
+
+class InProcessSink:
+    """Spans to this process's SDK span processors, samples to this process's histograms.
+
+    Args:
+        pipeline: The SDK tracer's pipeline; ``None`` when no span is deferred.
+    """
+
+    def __init__(self, pipeline: SdkSpanPipeline | None) -> None:
+        self._pipeline = pipeline
+
+    def export(self, spans: list[SpanRecord], samples: list[MetricSample]) -> None:
+        """Hand the spans to the span processors and record the samples."""
+        pipeline = self._pipeline
+        if pipeline is not None:
+            for span in spans:
+                pipeline.end(span)
+        for name, value, attributes in samples:
+            histogram(name).record(value, attributes)
+
+    def flush(self, *, force: bool) -> None:
+        """Nothing is buffered here."""
+
+
+_offload: TelemetrySink | None = None
+
+
+def offload_to(sink: TelemetrySink | None) -> None:
+    """Send deferred spans and samples of runners activated from now on to ``sink`` (``None``: this process).
+
+    ``setup()`` points this at its export process, so encoding and posting OTLP never compete
+    with the tick thread for the interpreter lock.
+    """
+    global _offload  # noqa: PLW0603  (one export destination per process, like the OTel globals)
+    _offload = sink
 
 
 class TelemetryWorker:
@@ -159,16 +311,16 @@ class TelemetryWorker:
 
     :meth:`submit` appends to a bounded queue; when the queue is full the oldest tick is
     dropped and counted in :attr:`dropped`. Python threads share one interpreter lock, so the
-    worker gives it up after every span it exports, and while :attr:`busy` is set (the tick
+    worker gives it up after every tick it exports, and while :attr:`busy` is set (the tick
     thread sets it for the duration of a tick) it waits rather than compete with the tick.
 
     Args:
-        tracer: Creates the exported spans.
+        sink: Receives each tick's spans and samples; settable later (:attr:`sink`).
         max_ticks: Ticks the queue holds before dropping the oldest.
     """
 
-    def __init__(self, tracer: Tracer, *, max_ticks: int = _QUEUE_TICKS) -> None:
-        self._tracer = tracer
+    def __init__(self, sink: TelemetrySink | None = None, *, max_ticks: int = _QUEUE_TICKS) -> None:
+        self.sink = sink
         self._max = max_ticks
         self._queue: deque[TickTelemetry | threading.Event] = deque()
         self._wake = threading.Event()
@@ -226,13 +378,24 @@ class TelemetryWorker:
             while queue:
                 item = queue.popleft()
                 if isinstance(item, threading.Event):
+                    self._flush_sink(force=True)
                     item.set()
                     continue
                 try:
                     self._export(item)
-                    self._yield()
                 except Exception as exc:  # telemetry must never take the robot down
                     _log.warning("deferred telemetry export failed", error=str(exc))
+                if queue:
+                    self._yield()
+            self._flush_sink(force=False)
+
+    def _flush_sink(self, *, force: bool) -> None:
+        sink = self.sink
+        if sink is not None:
+            try:
+                sink.flush(force=force)
+            except Exception as exc:
+                _log.warning("deferred telemetry flush failed", error=str(exc))
 
     def _yield(self) -> None:
         """Let the tick thread have the interpreter lock: at once, and for as long as a tick runs."""
@@ -243,24 +406,111 @@ class TelemetryWorker:
             waited += 1
 
     def _export(self, batch: TickTelemetry) -> None:
-        if batch.spans:
-            parent = trace.set_span_in_context(batch.span)
-            start_span = self._tracer.start_span
-            for record in batch.spans:
-                span = start_span(record.name, context=parent, attributes=record.attributes, start_time=record.start_ns)
-                if record.events:
-                    for name, attributes, stamp, exception in record.events:
-                        if exception is None:
-                            span.add_event(name, attributes, stamp)
-                        else:
-                            span.record_exception(exception, attributes, stamp)
-                if record.status is not None:
-                    span.set_status(record.status)
-                span.end(record.end_ns)
-                self._yield()
-        for live, end_ns, attributes in batch.ends:
-            if attributes:
-                live.set_attributes(attributes)
-            live.end(end_ns)
-        for record_sample, value, attributes in batch.samples:
-            record_sample(value, attributes)
+        sink = self.sink
+        if sink is not None:
+            sink.export([span.to_record() for span in batch.spans], batch.samples)
+
+
+class TickRecorder:
+    """How a runner records its ticks: deferred spans under an SDK tracer, the API's spans otherwise.
+
+    What is installed is looked at in :meth:`activate`, once per activation (providers are set
+    once per process, usually before a runner activates; the API's proxy tracer keeps working
+    for a provider installed later, live). :meth:`begin` then makes each tick's
+    :class:`TickTelemetry`, and :meth:`end` hands it to the worker.
+
+    Args:
+        provider: The tracer provider to record with; the global one when ``None``.
+    """
+
+    def __init__(self, provider: trace.TracerProvider | None = None) -> None:
+        self._provider = provider
+        # Without an explicit provider, the API's proxy tracer: it follows a provider installed later.
+        self._proxy = trace.get_tracer(TRACER_NAME, tracer_provider=provider)
+        self._pipeline: SdkSpanPipeline | None = None
+        self.defer_metrics = False
+        self.worker = TelemetryWorker()
+        self._direct = TickTelemetry(trace.INVALID_SPAN, defer_metrics=False)
+
+    @property
+    def defers_spans(self) -> bool:
+        """Whether ticks are recorded as deferred spans (an SDK tracer was found at activation)."""
+        return self._pipeline is not None
+
+    def activate(self) -> None:
+        """Look at the installed providers and start the worker."""
+        self.defer_metrics = meter_provider_records()
+        provider = self._provider or trace.get_tracer_provider()
+        self._pipeline = SdkSpanPipeline.of(provider.get_tracer(TRACER_NAME))
+        offload = _offload if self._provider is None else None
+        if offload is not None:
+            self.defer_metrics = True
+        self.worker.sink = offload or InProcessSink(self._pipeline)
+        self.worker.start()
+
+    def deactivate(self, timeout_s: float = 10.0) -> None:
+        """Flush and stop the worker."""
+        self.worker.stop(timeout_s)
+
+    def begin(self) -> TickTelemetry:
+        """Start a tick: its span (not yet current) and the batch its phases record into."""
+        pipeline = self._pipeline
+        if pipeline is None:
+            return self._begin_with_api()
+        parent_context = context.get_current()
+        parent: SpanContext | None = trace.get_current_span(parent_context).get_span_context()
+        if parent is not None and parent.is_valid:
+            trace_id = parent.trace_id
+            random_flag = int(parent.trace_flags) & ~_SAMPLED
+        else:
+            parent = None
+            trace_id = pipeline.new_trace_id()
+            random_flag = pipeline.random_trace_id_flag
+        decision = pipeline.sampler.should_sample(parent_context, trace_id, SPAN_TICK)
+        flags = random_flag | _SAMPLED if decision.decision.is_sampled() else random_flag
+        span_context = SpanContext(
+            trace_id,
+            pipeline.new_span_id(),
+            is_remote=False,
+            trace_flags=TraceFlags(flags),
+            trace_state=decision.trace_state,
+        )
+        if not decision.decision.is_recording():
+            return self._unrecorded(NonRecordingSpan(span_context))
+        sink: list[DeferredSpan] = []
+        new_id = pipeline.new_span_id
+        tick = DeferredSpan(sink, SPAN_TICK, parent, decision.attributes or None, span_context=span_context)
+
+        def start_span(name: str, attributes: Attributes) -> Span:
+            return DeferredSpan(sink, name, span_context, attributes, new_id=new_id)
+
+        return TickTelemetry(tick, defer_metrics=self.defer_metrics, start_span=start_span, spans=sink)
+
+    def _begin_with_api(self) -> TickTelemetry:
+        span = self._proxy.start_span(SPAN_TICK)
+        if span.is_recording():  # a provider other than the SDK's: its spans are used live
+            tick_context = trace.set_span_in_context(span)
+            proxy = self._proxy
+
+            def start_span(name: str, attributes: Attributes) -> Span:
+                return proxy.start_span(name, context=tick_context, attributes=attributes)
+
+            return TickTelemetry(span, defer_metrics=self.defer_metrics, start_span=start_span)
+        return self._unrecorded(span)
+
+    def _unrecorded(self, span: Span) -> TickTelemetry:
+        if self.defer_metrics:
+            return TickTelemetry(span, defer_metrics=True)
+        direct = self._direct  # nothing to queue: one object serves every tick
+        direct.span = span
+        return direct
+
+    def end(self, batch: TickTelemetry, attributes: dict[str, Any] | None = None) -> None:
+        """End the tick span with ``attributes`` (a dict the span may keep) and queue what the worker must export."""
+        batch.finish(attributes)
+        if batch.pending:
+            self.worker.submit(batch)
+
+    def start_live_span(self, name: str, attributes: Attributes = None) -> Span:
+        """A span started now through the API (for rare events such as an e-stop)."""
+        return self._proxy.start_span(name, attributes=attributes)

@@ -21,13 +21,17 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Any, Final, Protocol
+from typing import TYPE_CHECKING, Any, Final, Protocol
 
 import structlog
 from opentelemetry import trace
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError
+from openral_observability.deferred import offload_to
 from openral_observability.semconv import METER_NAME, SPAN_TICK
+
+if TYPE_CHECKING:
+    from openral_observability.export_process import ExportProcess
 
 PROTOCOL_HTTP: Final = "http/protobuf"
 PROTOCOL_GRPC: Final = "grpc"
@@ -166,9 +170,15 @@ class Telemetry:
     so a process that forgets to shut down still flushes.
     """
 
-    def __init__(self, config: TelemetryConfig | None = None, providers: Sequence[_Provider] = ()) -> None:
+    def __init__(
+        self,
+        config: TelemetryConfig | None = None,
+        providers: Sequence[_Provider] = (),
+        export_process: ExportProcess | None = None,
+    ) -> None:
         self.config = config
         self._providers = tuple(providers)
+        self.export_process = export_process
         self._lock = threading.Lock()
         self._done = not self._providers
         if not self._done:
@@ -181,7 +191,12 @@ class Telemetry:
 
     def force_flush(self, timeout_s: float = 5.0) -> bool:
         """Export everything buffered now; ``False`` when it did not finish within ``timeout_s``."""
-        return self._bounded(lambda: all(p.force_flush(int(timeout_s * 1e3)) for p in self._providers), timeout_s)
+
+        def flush() -> bool:
+            flushed = self.export_process is None or self.export_process.force_flush(timeout_s)
+            return all(p.force_flush(int(timeout_s * 1e3)) for p in self._providers) and flushed
+
+        return self._bounded(flush, timeout_s)
 
     def shutdown(self, timeout_s: float = 5.0) -> bool:
         """Flush, then stop the exporters. Idempotent.
@@ -199,7 +214,11 @@ class Telemetry:
         atexit.unregister(self.shutdown)
 
         def flush_and_stop() -> bool:
-            flushed = all(p.force_flush(int(timeout_s * 1e3)) for p in self._providers)
+            flushed = True
+            if self.export_process is not None:
+                offload_to(None)
+                flushed = self.export_process.shutdown(timeout_s)
+            flushed = all(p.force_flush(int(timeout_s * 1e3)) for p in self._providers) and flushed
             for provider in self._providers:
                 provider.shutdown()
             return flushed
@@ -240,6 +259,7 @@ def setup(
     sample_ratio: float | None = None,
     service_name: str = DEFAULT_SERVICE_NAME,
     metric_interval_ms: int | None = None,
+    export_process: bool = True,
 ) -> Telemetry:
     """Install tracer, meter and logger providers exporting over OTLP, once per process.
 
@@ -248,8 +268,13 @@ def setup(
     structlog events reach the ``LoggerProvider`` through
     :class:`openral_observability.logs.OTelLogBridge` with the current trace and span ids.
 
+    With ``export_process`` (the default), the spans and histogram samples of runner ticks are
+    exported by a child process (:mod:`openral_observability.export_process`), so OTLP encoding
+    never competes with the tick thread for the interpreter lock.
+
     Args:
         endpoint / protocol / sample_ratio / service_name / metric_interval_ms: See :func:`resolve_config`.
+        export_process: Export tick telemetry from a child process rather than from this one.
 
     Returns:
         A handle whose ``shutdown()`` flushes; a no-op handle when nothing is configured.
@@ -272,10 +297,22 @@ def setup(
         raise ROSRuntimeError(
             "an OpenTelemetry tracer provider is already installed in this process; setup() installs its own once"
         )
-    return Telemetry(config, _install(config))
+    providers = install(config)
+    process = None
+    if export_process and ("traces" in config.endpoints or "metrics" in config.endpoints):
+        from openral_observability.export_process import ExportProcess  # noqa: PLC0415
+
+        process = ExportProcess(config)
+        offload_to(process)
+    return Telemetry(config, providers, process)
 
 
-def _install(config: TelemetryConfig) -> list[_Provider]:
+def install(config: TelemetryConfig) -> list[_Provider]:
+    """Install the SDK providers and OTLP exporters ``config`` asks for, globally in this process.
+
+    Raises:
+        ROSDependencyMissing: The ``otel`` extra is not installed.
+    """
     try:
         from opentelemetry import _logs, metrics  # noqa: PLC0415
         from opentelemetry.sdk._logs import LoggerProvider  # noqa: PLC0415

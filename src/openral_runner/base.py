@@ -35,8 +35,8 @@ from openral_core import (
     TickResult,
     WorldState,
 )
-from openral_observability import metrics, semconv, trace_id_hex, traceparent, tracer
-from openral_observability.deferred import TelemetryWorker, TickTelemetry, meter_provider_records
+from openral_observability import metrics, semconv, trace_id_hex, traceparent
+from openral_observability.deferred import TickRecorder, TickTelemetry
 from openral_runner.clock import Clock, SystemClock
 from openral_runner.observer import TickObserver
 from openral_runner.stats import RollingSamples
@@ -116,17 +116,11 @@ class InferenceRunnerBase(ABC):
         self._raise_pending = False
         self._lateness_ms = 0.0
         self._metric_attrs = {semconv.ATTR_SKILL_ID: skill_id or runner_name}
-        # A proxy tracer from the API: it follows whichever provider is installed later.
-        self._tracer = tracer()
-        # Phase spans and per-tick metric samples are exported by a worker thread (see
-        # ``openral_observability.deferred``); with the API's no-op providers nothing is deferred
-        # and ``_direct`` (one object, reused) records straight to the no-op instruments.
-        self._worker = TelemetryWorker(self._tracer)
-        self._defer_metrics = False
-        self._direct = TickTelemetry(trace.INVALID_SPAN, defer_metrics=False)
-        self._telemetry = self._direct
-        self._tick_hist = metrics.histogram(semconv.METRIC_TICK_DURATION)
-        self._inference_hist = metrics.histogram(semconv.METRIC_INFERENCE_DURATION)
+        # Each tick's spans and metric samples are recorded as data and exported by a worker
+        # thread under an SDK provider (``openral_observability.deferred``); with the API's no-op
+        # providers they are the API's near-free no-ops.
+        self._recorder = TickRecorder()
+        self._telemetry = TickTelemetry(trace.INVALID_SPAN, defer_metrics=False)
         self._last_late_log_s = float("-inf")
         self._late_since_log = 0
         self.metadata: dict[str, Any] = {}
@@ -149,19 +143,18 @@ class InferenceRunnerBase(ABC):
     def activate(self) -> None:
         """Reset the tick counter, start the telemetry worker and mark the runner ready to tick.
 
-        Whether metric samples are deferred to the worker is decided here, once: only when the
-        global meter provider is an SDK one (a capability of the OTel API objects, not a setting).
+        How ticks are recorded is decided here, once, from the installed OpenTelemetry providers
+        (SDK ones: deferred to the worker; the API's no-op ones: recorded directly, for nothing).
         """
         self._tick_idx = 0
         self._stop_reason = None
-        self._defer_metrics = meter_provider_records()
-        self._worker.start()
+        self._recorder.activate()
         self._active = True
 
     def deactivate(self) -> None:
         """Stop ticking and flush the telemetry worker. Idempotent."""
         self._active = False
-        self._worker.stop()
+        self._recorder.deactivate()
 
     def flush_telemetry(self, timeout_s: float = 10.0) -> bool:
         """Wait until the spans and metric samples of every tick so far are handed to the SDK.
@@ -169,12 +162,12 @@ class InferenceRunnerBase(ABC):
         Returns:
             ``False`` if the worker did not catch up within ``timeout_s``.
         """
-        return self._worker.flush(timeout_s)
+        return self._recorder.worker.flush(timeout_s)
 
     @property
     def telemetry_dropped(self) -> int:
         """Ticks whose deferred telemetry was dropped because the worker fell behind."""
-        return self._worker.dropped
+        return self._recorder.worker.dropped
 
     def request_stop(self, reason: str = "stop_requested") -> None:
         """Ask ``run()`` to finish the current tick and return. Safe from signal handlers and threads."""
@@ -220,14 +213,11 @@ class InferenceRunnerBase(ABC):
         self._deadline_checked = False
         self._raise_pending = False
         self._lateness_ms = 0.0
-        span = self._tracer.start_span(semconv.SPAN_TICK)
-        if self._defer_metrics or span.is_recording():
-            telemetry = TickTelemetry(span, defer_metrics=self._defer_metrics)
-        else:
-            telemetry = self._direct
-            telemetry.span = span
+        recorder = self._recorder
+        telemetry = recorder.begin()
         self._telemetry = telemetry
-        worker = self._worker
+        span = telemetry.span
+        worker = recorder.worker
         worker.busy = True
         token = context.attach(trace.set_span_in_context(span))
         tick_attributes: dict[str, Any] | None = None
@@ -262,9 +252,7 @@ class InferenceRunnerBase(ABC):
                 raise error
         finally:
             context.detach(token)
-            telemetry.end_later(span, tick_attributes)
-            if telemetry is not self._direct and telemetry.pending:
-                worker.submit(telemetry)
+            recorder.end(telemetry, tick_attributes)
             worker.busy = False
         return result
 
@@ -350,8 +338,8 @@ class InferenceRunnerBase(ABC):
             self._budget_violations += 1
             metrics.add(semconv.METRIC_BUDGET_VIOLATIONS, 1, self._metric_attrs)
         telemetry = self._telemetry
-        telemetry.record_ms(self._tick_hist, result.tick_ms, self._metric_attrs)
-        telemetry.record_ms(self._inference_hist, result.inference_ms, self._metric_attrs)
+        telemetry.record_ms(semconv.METRIC_TICK_DURATION, result.tick_ms, self._metric_attrs)
+        telemetry.record_ms(semconv.METRIC_INFERENCE_DURATION, result.inference_ms, self._metric_attrs)
         if self._trace_id is None:
             self._trace_id = trace_id_hex(span)
         if span.is_recording():
@@ -429,7 +417,7 @@ class InferenceRunnerBase(ABC):
                 n += 1
                 self._run_t_end = clock.now()
                 exc.run_result = self._build_run_result(n, "deadline")
-                self._worker.flush()
+                self._recorder.worker.flush()
                 raise
             n += 1
             end = clock.now()
@@ -445,7 +433,7 @@ class InferenceRunnerBase(ABC):
                     self._missed_slots += skipped
                     metrics.add(semconv.METRIC_MISSED_SLOTS, skipped, self._metric_attrs)
             slot = next_slot
-        self._worker.flush()
+        self._recorder.worker.flush()
         return self._build_run_result(n, stop_reason)
 
     # -- results -------------------------------------------------------------------------

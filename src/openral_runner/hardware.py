@@ -108,9 +108,6 @@ class HardwareRunner(InferenceRunnerBase):
         }
         self._sensor_attrs = {r.sensor_id: {semconv.ATTR_SENSOR_ID: r.sensor_id} for r in self.sensor_readers}
         # Durations measured here are never negative: recorded on the instruments directly.
-        self._read_state_ms = metrics.histogram(semconv.METRIC_HAL_READ_STATE_DURATION)
-        self._send_action_ms = metrics.histogram(semconv.METRIC_HAL_SEND_ACTION_DURATION)
-        self._sensor_age_ms = metrics.histogram(semconv.METRIC_SENSORS_AGE)
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -215,18 +212,15 @@ class HardwareRunner(InferenceRunnerBase):
     # -- the tick ------------------------------------------------------------------------
 
     def _tick_impl(self, tick_idx: int) -> TickResult:
-        # Only the spans user code runs under are live on the tick thread: ``skill.chunk_inference``
-        # (spans a skill opens nest under it) and ``safety.check`` (likewise for a safety client,
-        # and the e-stop span). The other phases (sensor reads, state read, world-state snapshot,
-        # send) are recorded as plain data and exported by the telemetry worker with their
-        # recorded times under the tick span (``openral_observability.deferred``). A tick the
-        # sampler did not record gets no phase spans at all: its phases (and a skill's spans) use
-        # the tick's own non-recording span, which keeps them in the tick's unsampled trace.
+        # Every phase span is recorded as data and exported by the telemetry worker
+        # (``openral_observability.deferred``); those user code runs under (``skill.chunk_inference``
+        # and ``safety.check``) are made current, so spans the skill or safety client opens, and
+        # the e-stop span, nest under them. A tick the sampler did not record gets no phase spans
+        # at all: its phases use the tick's own non-recording span, keeping a skill's spans in the
+        # tick's unsampled trace.
         now = self._clock.now
         telemetry = self._telemetry
         start_span = telemetry.start_span
-        # Outside a recorded tick ``telemetry.start_span`` hands back the tick's own span.
-        live_span: Callable[..., Any] = self._tracer.start_span if telemetry.record_spans else start_span
         withheld: str | None = None
         stale: list[str] = []
         violations: list[str] = []
@@ -254,7 +248,7 @@ class HardwareRunner(InferenceRunnerBase):
         finally:
             span.end()
         t1 = now()
-        telemetry.record(self._read_state_ms, (t1 - t_read) * 1e3, self._hal_attrs)
+        telemetry.record(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t_read) * 1e3, self._hal_attrs)
 
         world = self.aggregator.snapshot(task=self.task, telemetry=telemetry)
         self._last_world = world
@@ -266,7 +260,7 @@ class HardwareRunner(InferenceRunnerBase):
         t2 = now()
         action: Action | None = None
         if withheld is None:
-            span = live_span(semconv.SPAN_SKILL_INFERENCE)
+            span = start_span(semconv.SPAN_SKILL_INFERENCE)
             token = context.attach(trace.set_span_in_context(span))
             try:
                 action = self.skill.step(world)
@@ -278,12 +272,12 @@ class HardwareRunner(InferenceRunnerBase):
                 _log.warning("skill step failed", error=str(exc), tick=tick_idx)
             finally:
                 context.detach(token)
-                telemetry.end_later(span)
+                span.end()
 
         t3 = now()
         to_send: Action | None = None
         if action is not None:
-            span = live_span(semconv.SPAN_SAFETY_CHECK)
+            span = start_span(semconv.SPAN_SAFETY_CHECK)
             token = context.attach(trace.set_span_in_context(span))
             try:
                 replacement = self.safety_client.check_action(action)
@@ -306,7 +300,7 @@ class HardwareRunner(InferenceRunnerBase):
                 withheld = self._estop(exc)
             finally:
                 context.detach(token)
-                telemetry.end_later(span)
+                span.end()
 
         t4 = now()
         applied = False
@@ -324,7 +318,7 @@ class HardwareRunner(InferenceRunnerBase):
                     _log.warning("send_action failed", error=str(exc), tick=tick_idx)
                 finally:
                     span.end()
-                telemetry.record(self._send_action_ms, (now() - t4) * 1e3, self._hal_attrs)
+                telemetry.record(semconv.METRIC_HAL_SEND_ACTION_DURATION, (now() - t4) * 1e3, self._hal_attrs)
             else:
                 withheld = "deadline"
                 trace.get_current_span().add_event(
@@ -376,7 +370,7 @@ class HardwareRunner(InferenceRunnerBase):
             for frame in frames.values():
                 self._accept_frame(frame)
                 self._telemetry.record_ms(
-                    self._sensor_age_ms, frame.age_ms(now_ns), self._sensor_attrs[frame.sensor_id]
+                    semconv.METRIC_SENSORS_AGE, frame.age_ms(now_ns), self._sensor_attrs[frame.sensor_id]
                 )
             return True
         finally:
@@ -406,7 +400,7 @@ class HardwareRunner(InferenceRunnerBase):
         else:
             self._accept_frame(frame)
             age_ms = frame.age_ms(self._clock.now_ns())
-            self._telemetry.record_ms(self._sensor_age_ms, age_ms, self._sensor_attrs[reader.sensor_id])
+            self._telemetry.record_ms(semconv.METRIC_SENSORS_AGE, age_ms, self._sensor_attrs[reader.sensor_id])
             if span.is_recording():
                 span.set_attributes({semconv.ATTR_SENSOR_ID: reader.sensor_id, semconv.ATTR_SENSOR_AGE_MS: age_ms})
             return None
@@ -434,7 +428,7 @@ class HardwareRunner(InferenceRunnerBase):
         span = trace.get_current_span()
         span.add_event(semconv.EVENT_ESTOP_REQUESTED, {semconv.ATTR_ESTOP_REASON: str(exc)})
         _log.error("e-stop requested", reason=str(exc))
-        estop_span = self._tracer.start_span(semconv.SPAN_HAL_ESTOP, attributes=self._hal_attrs)
+        estop_span = self._recorder.start_live_span(semconv.SPAN_HAL_ESTOP, self._hal_attrs)
         try:
             self.hal.estop()
         except Exception as estop_exc:  # still stop the loop even if the HAL cannot confirm

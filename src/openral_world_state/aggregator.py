@@ -102,7 +102,6 @@ class WorldStateAggregator:
         self._has_sensors = bool(self._sensor_ids)
         self._clock = clock
         self._tracer = tracer()  # the API's proxy tracer follows a provider installed later
-        self._staleness_ms = metrics.histogram(semconv.METRIC_WORLD_STATE_STALENESS)
         self._lock = threading.Lock()
         self._snapshot_lock = threading.Lock()
         self._joint_state: JointState | None = None
@@ -236,7 +235,7 @@ class WorldStateAggregator:
             if telemetry is None:
                 metrics.record_histogram_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
             else:
-                telemetry.record_ms(self._staleness_ms, age_ms, component.attributes)
+                telemetry.record_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
         error = errors.get(component.name) if errors else None
 
         if stale and not component.stale_latched:

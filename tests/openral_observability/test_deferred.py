@@ -1,44 +1,67 @@
-"""Deferred telemetry: a stalled worker never blocks the tick thread, and drops are counted."""
+"""Deferred telemetry: spans recorded as data export as the SDK's own would; a stalled worker never blocks."""
 
 from __future__ import annotations
 
 import threading
 import time
-from typing import Any
+from collections.abc import Iterator
 
-from opentelemetry import trace
+import pytest
+from opentelemetry import context, trace
+from opentelemetry.sdk.trace import ReadableSpan, TracerProvider
+from opentelemetry.sdk.trace.export import SimpleSpanProcessor
+from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
+from opentelemetry.sdk.trace.sampling import ALWAYS_OFF
+from opentelemetry.trace import StatusCode
 
-from openral_observability.deferred import DeferredSpan, TelemetryWorker, TickTelemetry
+from openral_observability import semconv
+from openral_observability.deferred import DeferredSpan, MetricSample, TelemetryWorker, TickRecorder, TickTelemetry
+from openral_observability.span_pipeline import SpanRecord
 
 
-class StallingTracer:
-    """A tracer whose ``start_span`` blocks until released, like an exporter stuck on the network."""
+class StallingSink:
+    """A span sink that blocks until released, like an exporter stuck on the network."""
 
     def __init__(self) -> None:
         self.release = threading.Event()
         self.started = threading.Event()
 
-    def start_span(self, *_args: Any, **_kwargs: Any) -> trace.Span:
+    def export(self, spans: list[SpanRecord], samples: list[MetricSample]) -> None:
         self.started.set()
         self.release.wait(10)
-        return trace.INVALID_SPAN
+
+    def flush(self, *, force: bool) -> None:
+        pass
 
 
 def _batch() -> TickTelemetry:
-    parent = trace.NonRecordingSpan(trace.SpanContext(1, 2, is_remote=False, trace_flags=trace.TraceFlags(1)))
-    batch = TickTelemetry(parent, defer_metrics=False)
-    batch.record_spans = True
-    batch.start_span("phase").end()
-    return batch
+    sink: list[DeferredSpan] = []
+    parent = trace.SpanContext(1, 2, is_remote=False, trace_flags=trace.TraceFlags(1))
+    DeferredSpan(sink, "phase", parent, new_id=lambda: 3).end()
+    return TickTelemetry(trace.INVALID_SPAN, defer_metrics=False, spans=sink)
+
+
+@pytest.fixture
+def local() -> Iterator[tuple[TracerProvider, InMemorySpanExporter]]:
+    """A private SDK provider with an in-memory exporter (the global one is the session's)."""
+    exporter = InMemorySpanExporter()
+    provider = TracerProvider()
+    provider.add_span_processor(SimpleSpanProcessor(exporter))
+    yield provider, exporter
+    provider.shutdown()
+
+
+def _by_name(exporter: InMemorySpanExporter) -> dict[str, ReadableSpan]:
+    return {span.name: span for span in exporter.get_finished_spans()}
 
 
 def test_a_stalled_worker_never_blocks_submit_and_counts_drops() -> None:
-    tracer = StallingTracer()
-    worker = TelemetryWorker(tracer, max_ticks=8)  # type: ignore[arg-type]
+    sink = StallingSink()
+    worker = TelemetryWorker(sink, max_ticks=8)
     worker.start()
     try:
         worker.submit(_batch())
-        assert tracer.started.wait(5)  # the worker is now stuck on the first batch
+        assert sink.started.wait(5)  # the worker is now stuck on the first batch
         start = time.perf_counter()
         for _ in range(1000):
             worker.submit(_batch())
@@ -47,26 +70,144 @@ def test_a_stalled_worker_never_blocks_submit_and_counts_drops() -> None:
         assert worker.dropped == 1000 - 8
         assert not worker.flush(timeout_s=0.05)  # still stuck: flush gives up, it does not hang
     finally:
-        tracer.release.set()
+        sink.release.set()
         worker.stop()
     assert worker.flush()  # stopped and drained
 
 
-def test_deferred_span_keeps_shared_attributes_unmodified() -> None:
+def test_deferred_span_keeps_shared_attributes_and_freezes_at_end() -> None:
     shared = {"k": "v"}
     sink: list[DeferredSpan] = []
-    span = DeferredSpan(sink, "phase", shared)
+    span = DeferredSpan(sink, "phase", None, shared, span_context=trace.SpanContext(1, 2, is_remote=False))
     span.set_attribute("extra", 1)
     span.add_event("e", {"a": 1})
+    assert span.is_recording()
     span.end()
+    span.end()  # a second end is ignored, as the SDK does
+    span.set_attribute("late", 2)
     assert shared == {"k": "v"}
     assert span.attributes == {"k": "v", "extra": 1}
     assert sink == [span]
+    assert not span.is_recording()
     assert span.start_ns <= span.events[0][2] <= span.end_ns  # type: ignore[index]
 
 
-def test_an_unrecorded_tick_uses_its_own_span_for_phases() -> None:
-    tick = trace.NonRecordingSpan(trace.SpanContext(1, 2, is_remote=False))
-    batch = TickTelemetry(tick, defer_metrics=False)
-    assert batch.start_span("phase") is tick
-    assert not batch.pending
+def test_a_phase_context_is_made_on_first_use_in_its_parents_trace() -> None:
+    parent = trace.SpanContext(0xABC, 0x1, is_remote=False, trace_flags=trace.TraceFlags(1))
+    ids = iter([0x10, 0x11])
+    span = DeferredSpan([], "phase", parent, new_id=lambda: next(ids))
+    first = span.get_span_context()
+    assert span.get_span_context() is first  # fixed once made
+    assert (first.trace_id, first.span_id, first.trace_flags) == (0xABC, 0x10, parent.trace_flags)
+
+
+def test_recorded_tick_exports_a_tree_that_live_sdk_children_join(
+    local: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = local
+    recorder = TickRecorder(provider)
+    recorder.activate()
+    try:
+        assert recorder.defers_spans
+        with provider.get_tracer("cli").start_as_current_span("cli.command") as root:
+            batch = recorder.begin()
+            tick = batch.span
+            token = context.attach(trace.set_span_in_context(tick))
+            phase = batch.start_span(semconv.SPAN_SKILL_INFERENCE, {"shared": True})
+            inner = context.attach(trace.set_span_in_context(phase))
+            with provider.get_tracer("skill").start_as_current_span("policy.forward"):
+                pass  # a skill's own SDK span, started live under the deferred phase
+            try:
+                raise ValueError("bad action")
+            except ValueError as exc:
+                phase.record_exception(exc)
+            phase.set_status(StatusCode.ERROR, "bad action")
+            context.detach(inner)
+            phase.end()
+            context.detach(token)
+            recorder.end(batch, {semconv.ATTR_TICK_IDX: 7})
+            assert recorder.worker.flush()
+    finally:
+        recorder.deactivate()
+    spans = _by_name(exporter)
+    tick_span, phase_span, skill_span = (
+        spans[semconv.SPAN_TICK],
+        spans[semconv.SPAN_SKILL_INFERENCE],
+        spans["policy.forward"],
+    )
+    root_ctx = root.get_span_context()
+    assert tick_span.parent is not None
+    assert tick_span.parent.span_id == root_ctx.span_id
+    assert tick_span.context.trace_id == root_ctx.trace_id
+    assert tick_span.context.trace_flags == root_ctx.trace_flags  # sampled, and random-trace-id as the root
+    assert tick_span.attributes == {semconv.ATTR_TICK_IDX: 7}
+    assert phase_span.parent is not None
+    assert phase_span.parent.span_id == tick_span.context.span_id
+    assert skill_span.parent is not None
+    assert skill_span.parent.span_id == phase_span.context.span_id
+    assert tick_span.start_time <= phase_span.start_time <= phase_span.end_time <= tick_span.end_time
+    assert phase_span.status.status_code is StatusCode.ERROR
+    (event,) = phase_span.events
+    assert event.name == "exception"
+    assert event.attributes["exception.type"] == "ValueError"
+    assert event.attributes["exception.message"] == "bad action"
+    assert "raise ValueError" in event.attributes["exception.stacktrace"]
+    assert tick_span.resource is provider.resource
+    assert tick_span.instrumentation_scope is not None
+    assert tick_span.instrumentation_scope.name == semconv.TRACER_NAME
+    assert batch.pending
+
+
+def test_exception_event_matches_the_sdks_own(local: tuple[TracerProvider, InMemorySpanExporter]) -> None:
+    provider, exporter = local
+    recorder = TickRecorder(provider)
+    recorder.activate()
+    error = KeyError("joint")
+    try:
+        batch = recorder.begin()
+        batch.span.record_exception(error, {"extra": 1})
+        recorder.end(batch)
+        assert recorder.worker.flush()
+    finally:
+        recorder.deactivate()
+    live = provider.get_tracer("x").start_span("live")
+    live.record_exception(error, {"extra": 1})
+    live.end()
+    deferred_event = _by_name(exporter)[semconv.SPAN_TICK].events[0]
+    live_event = _by_name(exporter)["live"].events[0]
+    assert dict(deferred_event.attributes or {}) == dict(live_event.attributes or {})
+
+
+def test_an_unsampled_tick_records_nothing_and_phases_use_its_span() -> None:
+    exporter = InMemorySpanExporter()
+    provider = TracerProvider(sampler=ALWAYS_OFF)
+    provider.add_span_processor(SimpleSpanProcessor(exporter))
+    recorder = TickRecorder(provider)
+    recorder.activate()
+    try:
+        batch = recorder.begin()
+        assert not batch.span.is_recording()
+        assert batch.span.get_span_context().is_valid  # a real id: a skill's spans stay in its unsampled trace
+        assert not batch.span.get_span_context().trace_flags.sampled
+        assert batch.start_span("phase") is batch.span
+        recorder.end(batch)
+        assert not batch.pending
+    finally:
+        recorder.deactivate()
+        provider.shutdown()
+    assert exporter.get_finished_spans() == ()
+
+
+def test_without_an_sdk_tracer_ticks_use_the_apis_no_op_spans() -> None:
+    recorder = TickRecorder(trace.NoOpTracerProvider())
+    recorder.activate()
+    try:
+        assert not recorder.defers_spans
+        first = recorder.begin()
+        assert not first.record_spans
+        assert first.start_span("phase") is first.span
+        assert not first.span.get_span_context().is_valid
+        recorder.end(first)
+        assert not first.spans
+    finally:
+        recorder.deactivate()

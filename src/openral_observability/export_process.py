@@ -1,0 +1,207 @@
+"""An export process for a runner's per-tick telemetry: OTLP encoding and posting off the interpreter lock.
+
+Turning a span into OTLP protobuf and posting it costs the exporting thread about 50 µs of
+Python per span. A 500 Hz tick makes seven spans and eight histogram samples, so that is
+several hundred microseconds per tick, under the lock the tick thread needs. ``setup()``
+therefore starts this module as a child process (``python -m openral_observability.export_process``)
+with the same configuration. The runner's telemetry worker sends it each tick's spans and metric
+samples as plain records over a pipe (pickled, length-prefixed); the child hands them to its own
+SDK span processors and histograms, which export over OTLP exactly as the parent would. Spans
+and metrics the parent makes outside ticks (``cli.command``, counters, logs) are exported by the
+parent as usual; both processes carry the same resource.
+
+Protocol on the child's stdin: a 4-byte little-endian length, then a pickled message:
+``("data", spans, samples)`` or ``("flush",)``; the child answers a flush with one byte on
+stdout once its exporters have flushed. End of input means shut down: the child flushes and
+exits. It ignores SIGINT and SIGTERM, so a Ctrl-C or a service stop delivered to the whole
+process group still lets the parent's shutdown drain it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import pickle
+import select
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, replace
+from typing import IO, Final
+
+import structlog
+from opentelemetry import trace
+
+from openral_observability.deferred import InProcessSink, MetricSample
+from openral_observability.semconv import TRACER_NAME
+from openral_observability.setup import TelemetryConfig, install
+from openral_observability.span_pipeline import SdkSpanPipeline, SpanRecord
+
+_log = structlog.get_logger(__name__)
+
+_HEADER: Final = struct.Struct("<I")
+_FLUSHED: Final = b"\x01"
+SEND_INTERVAL_S: Final = 0.02
+"""Records are sent at most this often (or when :data:`SEND_RECORDS` are buffered): one pickle and one
+write per batch of ticks, not per tick."""
+SEND_RECORDS: Final = 512
+
+
+class ExportProcess:
+    """The parent's end: buffers tick records and sends them to the child whenever the worker's queue empties.
+
+    Thread-safe: every runner's telemetry worker may call it. If the child dies, records are
+    dropped (counted in :attr:`dropped_spans` and :attr:`dropped_samples`), with one warning.
+
+    Args:
+        config: What the child installs (its ``logs`` signal is left to the parent).
+    """
+
+    def __init__(self, config: TelemetryConfig) -> None:
+        settings = json.dumps(asdict(config))
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", __name__, settings],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=os.environ.copy(),
+        )
+        self._lock = threading.Lock()
+        self._spans: list[SpanRecord] = []
+        self._samples: list[MetricSample] = []
+        self._alive = True
+        self._sent_at = 0.0
+        self.dropped_spans = 0
+        self.dropped_samples = 0
+
+    @property
+    def pid(self) -> int:
+        """The child's process id."""
+        return self._process.pid
+
+    @property
+    def running(self) -> bool:
+        """Whether the child is still running."""
+        return self._process.poll() is None
+
+    def export(self, spans: list[SpanRecord], samples: list[MetricSample]) -> None:
+        """Buffer one tick's records until the next :meth:`flush`."""
+        with self._lock:
+            self._spans.extend(spans)
+            self._samples.extend(samples)
+
+    def flush(self, *, force: bool = True) -> None:
+        """Send what is buffered: now when ``force``, else once :data:`SEND_INTERVAL_S` has passed or
+        :data:`SEND_RECORDS` are waiting."""
+        if (
+            not force
+            and time.monotonic() - self._sent_at < SEND_INTERVAL_S
+            and len(self._spans) + len(self._samples) < SEND_RECORDS
+        ):
+            return
+        self.send()
+
+    def send(self) -> None:
+        """Send everything buffered, as one message."""
+        with self._lock:
+            spans, samples = self._spans, self._samples
+            self._sent_at = time.monotonic()
+            if not spans and not samples:
+                return
+            self._spans, self._samples = [], []
+            self._send(("data", spans, samples), len(spans), len(samples))
+
+    def force_flush(self, timeout_s: float = 5.0) -> bool:
+        """Send what is buffered and wait until the child's exporters have flushed it."""
+        self.send()
+        with self._lock:
+            if not self._send(("flush",), 0, 0):
+                return False
+            stdout = self._process.stdout
+            assert stdout is not None
+            ready, _, _ = select.select([stdout], [], [], timeout_s)
+            return bool(ready) and stdout.read(1) == _FLUSHED
+
+    def shutdown(self, timeout_s: float = 5.0) -> bool:
+        """Send what is buffered, close the pipe and wait for the child to export and exit.
+
+        Returns:
+            ``True`` when the child exited cleanly within ``timeout_s``; otherwise it is killed.
+        """
+        self.send()
+        with self._lock:
+            self._alive = False
+            stdin = self._process.stdin
+            if stdin is not None and not stdin.closed:
+                with contextlib.suppress(OSError):  # a dead child has already closed its end
+                    stdin.close()
+        try:
+            return self._process.wait(timeout_s) == 0
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+            _log.warning("telemetry export process did not finish in time; its buffered telemetry is lost")
+            return False
+        finally:
+            if self._process.stdout is not None:
+                self._process.stdout.close()
+
+    def _send(self, message: tuple[object, ...], n_spans: int, n_samples: int) -> bool:
+        stdin = self._process.stdin
+        if self._alive and stdin is not None:
+            payload = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+            try:
+                stdin.write(_HEADER.pack(len(payload)) + payload)
+                stdin.flush()
+                return True
+            except OSError as exc:  # the child is gone: keep the robot running, count what is lost
+                self._alive = False
+                _log.warning("telemetry export process is gone; tick telemetry is dropped from now on", error=str(exc))
+        self.dropped_spans += n_spans
+        self.dropped_samples += n_samples
+        return False
+
+
+def _read_exact(stream: IO[bytes], n: int) -> bytes | None:
+    data = stream.read(n)
+    return data if data is not None and len(data) == n else None
+
+
+def serve(stdin: IO[bytes], stdout: IO[bytes], settings: str) -> int:
+    """The child's loop: install the exporters, export what arrives, flush and exit at end of input."""
+    config = TelemetryConfig(**json.loads(settings))
+    config = replace(config, endpoints={k: v for k, v in config.endpoints.items() if k != "logs"})
+    providers = install(config)
+    pipeline = SdkSpanPipeline.of(trace.get_tracer_provider().get_tracer(TRACER_NAME))
+    sink = InProcessSink(pipeline)
+    while (header := _read_exact(stdin, _HEADER.size)) is not None:
+        payload = _read_exact(stdin, _HEADER.unpack(header)[0])
+        if payload is None:
+            break
+        message = pickle.loads(payload)  # our parent's records, over a private pipe
+        if message[0] == "data":
+            sink.export(message[1], message[2])
+        elif message[0] == "flush":
+            for provider in providers:
+                provider.force_flush()
+            stdout.write(_FLUSHED)
+            stdout.flush()
+    for provider in providers:
+        provider.force_flush()
+        provider.shutdown()
+    return 0
+
+
+def main() -> int:
+    """Entry point of the child process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    structlog.configure(logger_factory=structlog.PrintLoggerFactory(file=sys.stderr))
+    return serve(sys.stdin.buffer, sys.stdout.buffer, sys.argv[1])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

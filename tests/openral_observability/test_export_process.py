@@ -1,0 +1,131 @@
+"""The export process: tick records sent over its pipe reach a collector as the SDK would export them."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from openral_observability import semconv
+from openral_observability.export_process import ExportProcess
+from openral_observability.setup import TelemetryConfig, resolve_config
+from openral_observability.span_pipeline import SpanRecord
+from openral_observability.testing import OTLPReceiver
+
+TRACE_ID = 0x0AF7651916CD43DD8448EB211C80319C
+TICK_ID = 0x00F067AA0BA902B7
+PARENT_ID = 0xB7AD6B7169203331
+
+
+def _records() -> list[SpanRecord]:
+    tick = SpanRecord(
+        name=semconv.SPAN_TICK,
+        trace_id=TRACE_ID,
+        span_id=TICK_ID,
+        trace_flags=1,
+        trace_state=None,
+        parent_span_id=PARENT_ID,
+        parent_is_remote=False,
+        start_ns=1_000_000_000,
+        end_ns=1_000_500_000,
+        attributes={semconv.ATTR_TICK_IDX: 3, semconv.ATTR_ACTION_APPLIED: True},
+        events=[(semconv.EVENT_DEADLINE_MISSED, {semconv.ATTR_LATENESS_MS: 0.25}, 1_000_400_000)],
+        status_code=2,
+        status_description="deadline missed",
+    )
+    phase = tick._replace(
+        name=semconv.SPAN_HAL_SEND_ACTION,
+        span_id=TICK_ID + 1,
+        parent_span_id=TICK_ID,
+        start_ns=1_000_300_000,
+        end_ns=1_000_350_000,
+        attributes=None,
+        events=[],
+        status_code=0,
+        status_description=None,
+    )
+    return [tick, phase]
+
+
+@pytest.fixture
+def receiver() -> Iterator[OTLPReceiver]:
+    with OTLPReceiver() as running:
+        yield running
+
+
+@pytest.fixture
+def config(receiver: OTLPReceiver, monkeypatch: pytest.MonkeyPatch) -> TelemetryConfig:
+    for key in list(os.environ):
+        if key.startswith("OTEL_"):
+            monkeypatch.delenv(key)
+    resolved = resolve_config(endpoint=receiver.endpoint, service_name="arm-3", metric_interval_ms=60_000)
+    assert resolved is not None
+    return resolved
+
+
+def test_records_are_exported_with_their_ids_times_events_and_samples(
+    receiver: OTLPReceiver, config: TelemetryConfig
+) -> None:
+    process = ExportProcess(config)
+    process.export(_records(), [(semconv.METRIC_TICK_DURATION, 0.5, {semconv.ATTR_SKILL_ID: "probe"})])
+    process.export([], [(semconv.METRIC_TICK_DURATION, 1.5, {semconv.ATTR_SKILL_ID: "probe"})])
+    assert process.shutdown(timeout_s=20)
+    spans = {s.name: s for s in receiver.spans()}
+    tick, send = spans[semconv.SPAN_TICK], spans[semconv.SPAN_HAL_SEND_ACTION]
+    assert int.from_bytes(tick.trace_id) == TRACE_ID
+    assert int.from_bytes(tick.span_id) == TICK_ID
+    assert int.from_bytes(tick.parent_span_id) == PARENT_ID
+    assert send.parent_span_id == tick.span_id
+    assert (tick.start_time_unix_nano, tick.end_time_unix_nano) == (1_000_000_000, 1_000_500_000)
+    assert {kv.key: kv.value.int_value for kv in tick.attributes}[semconv.ATTR_TICK_IDX] == 3
+    (event,) = tick.events
+    assert event.name == semconv.EVENT_DEADLINE_MISSED
+    assert event.time_unix_nano == 1_000_400_000
+    assert tick.status.code == 2
+    assert tick.status.message == "deadline missed"
+    assert receiver.resource_attributes()["service.name"] == "arm-3"
+    metric = [m for m in receiver.metrics() if m.name == semconv.METRIC_TICK_DURATION][-1]  # cumulative
+    point = metric.histogram.data_points[-1]
+    assert (point.count, point.sum) == (2, 2.0)
+    assert 0.01 in point.explicit_bounds  # the millisecond buckets setup() installs
+
+
+def test_force_flush_delivers_while_the_process_runs(receiver: OTLPReceiver, config: TelemetryConfig) -> None:
+    process = ExportProcess(config)
+    try:
+        process.export(_records(), [])
+        assert process.force_flush(timeout_s=20)
+        assert len(receiver.spans()) == 2
+    finally:
+        assert process.shutdown(timeout_s=20)
+
+
+def test_an_interrupt_to_the_process_group_does_not_lose_the_buffer(
+    receiver: OTLPReceiver, config: TelemetryConfig
+) -> None:
+    process = ExportProcess(config)
+    process.export(_records(), [])
+    process.flush()
+    assert process.force_flush(timeout_s=20)  # the child is up and has installed its handlers
+    os.kill(process.pid, signal.SIGINT)  # what a Ctrl-C in the terminal also sends the child
+    os.kill(process.pid, signal.SIGTERM)
+    process.export(_records()[:1], [])
+    assert process.shutdown(timeout_s=20)
+    assert len(receiver.spans()) == 3
+
+
+def test_a_dead_export_process_counts_what_it_drops_and_never_raises(config: TelemetryConfig) -> None:
+    process = ExportProcess(config)
+    os.kill(process.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while process.running and time.monotonic() < deadline:
+        time.sleep(0.01)
+    for _ in range(3):
+        process.export(_records(), [(semconv.METRIC_TICK_DURATION, 1.0, None)])
+        process.flush()
+    assert (process.dropped_spans, process.dropped_samples) == (6, 3)
+    assert not process.force_flush(timeout_s=1)
+    assert not process.shutdown(timeout_s=5)
