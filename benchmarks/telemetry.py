@@ -20,7 +20,8 @@ OpenTelemetry providers can be installed only once per process:
 Reported per configuration (median over ``--rounds`` interleaved rounds): the tick's own wall
 time (mean, p50, p99, as the runner measures it: the cost on the tick thread), the CPU time of
 the runner process's other threads per tick (the telemetry worker and the exporters' background
-work), the CPU time of the export process per tick, and for ``otlp`` the share of spans that
+work), the CPU time of the export process per tick (less what it costs to start and stop one
+with nothing to export), and for ``otlp`` the share of spans that
 reached the receiver. "added" is each figure minus ``off`` from the same round.
 
 Run:  uv run python benchmarks/telemetry.py [--rate 500] [--seconds 4] [--rounds 3]
@@ -51,7 +52,8 @@ from _common import machine_line
 from openral_core import SensorFrame, SensorReaderConfig
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.null import NullHAL
-from openral_observability.setup import setup
+from openral_observability.export_process import ExportProcess
+from openral_observability.setup import TelemetryConfig, setup
 from openral_observability.testing import OTLPReceiver
 from openral_rskill.noop import HoldSkill
 from openral_runner.hardware import HardwareRunner
@@ -132,8 +134,9 @@ def _child(mode: str, rate: float, seconds: float, endpoint: str) -> None:
     background_s = (time.process_time() - cpu0) - (time.thread_time() - thread0)
     runner.deactivate()
     flushed = handle.shutdown(timeout_s=30) if handle is not None else True
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)  # the export process, once it has exited
-    exporter_s = children.ru_utime + children.ru_stime
+    exporter_s = _children_cpu_s()  # the export process, once it has exited
+    if mode.startswith("otlp") and mode != "otlp_inproc":
+        exporter_s -= _idle_export_process_cpu_s(handle.config if handle is not None else None, exporter_s)
     ticks = [t.tick_ms for t in runner.recent_ticks]
     print(
         json.dumps(
@@ -153,6 +156,19 @@ def _child(mode: str, rate: float, seconds: float, endpoint: str) -> None:
             }
         )
     )
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _idle_export_process_cpu_s(config: TelemetryConfig | None, before_s: float) -> float:
+    """CPU time of an export process that starts (imports, installs exporters) and stops with nothing to do."""
+    if config is None:
+        return 0.0
+    ExportProcess(config).shutdown(timeout_s=30)
+    return _children_cpu_s() - before_s
 
 
 class _NullExporter(SpanExporter):

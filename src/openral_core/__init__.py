@@ -4,6 +4,7 @@ from openral_core.actions import Action, ControlMode, SafetyEnvelope, SafetyMode
 from openral_core.environment import (
     DeadlineOverrunPolicy,
     FaultPolicy,
+    GarbageCollection,
     HalConfig,
     RealtimeConfig,
     RobotEnvironment,
@@ -42,6 +43,7 @@ __all__ = [
     "DeadlineOverrunPolicy",
     "FaultPolicy",
     "FrameEncoding",
+    "GarbageCollection",
     "HalConfig",
     "JointKind",
     "JointSpec",

@@ -25,6 +25,19 @@ class SensorReaderBackend(StrEnum):
     HOLOSCAN = "holoscan"  # reserved: no implementation yet
 
 
+class GarbageCollection(StrEnum):
+    """When Python's cyclic garbage collector may run during ``run()``.
+
+    ``between_ticks``: automatic collection is paused for the run (objects alive at its start
+    are frozen out of every collection) and the young generations are collected in the idle time
+    after a tick, so no collection pause lands inside a tick. ``automatic``: Python's own
+    thresholds, which can stop any thread, mid-tick, for milliseconds.
+    """
+
+    BETWEEN_TICKS = "between_ticks"
+    AUTOMATIC = "automatic"
+
+
 class DeadlineOverrunPolicy(StrEnum):
     """What the runner does with an action that is ready after its tick's deadline.
 
@@ -172,12 +185,14 @@ class RealtimeConfig(_Block):
         switch_interval_s: ``sys.setswitchinterval`` value; a short interval bounds how long
             another Python thread can hold the GIL past a tick's wake-up.
         lock_memory: ``mlockall`` so page faults cannot stall a tick.
+        garbage_collection: When the cyclic garbage collector may run (see :class:`GarbageCollection`).
     """
 
     sched_fifo_priority: int | None = Field(default=None, ge=1, le=99)
     cpu_affinity: list[int] | None = None
     switch_interval_s: float | None = Field(default=None, gt=0, le=0.1)
     lock_memory: bool = False
+    garbage_collection: GarbageCollection = GarbageCollection.BETWEEN_TICKS
 
 
 class FaultPolicy(_Block):

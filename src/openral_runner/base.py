@@ -28,6 +28,7 @@ from opentelemetry.trace import Span, Status, StatusCode
 
 from openral_core import (
     DeadlineOverrunPolicy,
+    GarbageCollection,
     ROSConfigError,
     ROSDeadlineMissed,
     ROSRuntimeError,
@@ -38,6 +39,7 @@ from openral_core import (
 from openral_observability import metrics, semconv, trace_id_hex, traceparent
 from openral_observability.deferred import TickRecorder, TickTelemetry
 from openral_runner.clock import Clock, SystemClock
+from openral_runner.gc_policy import BetweenTicksCollector
 from openral_runner.observer import TickObserver
 from openral_runner.stats import RollingSamples
 
@@ -66,6 +68,8 @@ class InferenceRunnerBase(ABC):
         clock: Scheduling clock; a fake clock makes tests deterministic.
         skill_id: Reported in results and as the ``skill.id`` metric label.
         max_consecutive_failures: Faulted ticks in a row that end the run safely.
+        garbage_collection: When Python's garbage collector may run during ``run()``; by default
+            only in the idle time between ticks (:mod:`openral_runner.gc_policy`).
     """
 
     _missed_slots: int
@@ -94,6 +98,7 @@ class InferenceRunnerBase(ABC):
         clock: Clock | None = None,
         skill_id: str | None = None,
         max_consecutive_failures: int = 5,
+        garbage_collection: GarbageCollection = GarbageCollection.BETWEEN_TICKS,
     ) -> None:
         if not rate_hz > 0:
             raise ROSConfigError(f"must be positive, got {rate_hz}", field="rate_hz")
@@ -107,6 +112,7 @@ class InferenceRunnerBase(ABC):
         self.save_dir = save_dir
         self.skill_id = skill_id
         self.max_consecutive_failures = max_consecutive_failures
+        self.garbage_collection = GarbageCollection(garbage_collection)
         self._clock: Clock = clock or SystemClock()
         self._active = False
         self._tick_idx = 0
@@ -387,6 +393,22 @@ class InferenceRunnerBase(ABC):
         if max_ticks is not None and max_ticks < 0:
             raise ROSConfigError(f"must be >= 0, got {max_ticks}", field="max_ticks")
         self._reset_counters()
+        collector = BetweenTicksCollector() if self.garbage_collection is GarbageCollection.BETWEEN_TICKS else None
+        if collector is not None:
+            collector.start()
+        try:
+            n, stop_reason = self._loop(max_ticks, duration_s, collector)
+        finally:
+            if collector is not None:
+                collector.stop()
+                self.metadata["gc"] = collector.report
+        self._recorder.worker.flush()
+        return self._build_run_result(n, stop_reason)
+
+    def _loop(
+        self, max_ticks: int | None, duration_s: float | None, collector: BetweenTicksCollector | None
+    ) -> tuple[int, str]:
+        """The schedule: one tick per slot; returns the ticks run and why the loop stopped."""
         clock = self._clock
         period = self.period_s
         t0 = self._schedule_origin()
@@ -433,8 +455,9 @@ class InferenceRunnerBase(ABC):
                     self._missed_slots += skipped
                     metrics.add(semconv.METRIC_MISSED_SLOTS, skipped, self._metric_attrs)
             slot = next_slot
-        self._recorder.worker.flush()
-        return self._build_run_result(n, stop_reason)
+            if collector is not None:
+                collector.collect_if_due(t0 + slot * period - clock.now())
+        return n, stop_reason
 
     # -- results -------------------------------------------------------------------------
 

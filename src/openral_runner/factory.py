@@ -112,6 +112,7 @@ def build_runner(
         max_consecutive_failures=env.faults.max_consecutive_failures,
         runner_name=env.name,
         realtime=env.realtime,
+        garbage_collection=env.realtime.garbage_collection,
         sync=env.sync,
         thumbnails=ThumbnailPublisher(env.thumbnail_hz) if env.sensors and env.thumbnail_hz > 0 else None,
     )
