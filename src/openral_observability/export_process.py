@@ -37,7 +37,7 @@ from typing import IO, Final
 import structlog
 from opentelemetry import trace
 
-from openral_observability.deferred import InProcessSink, MetricSample
+from openral_observability.deferred import InProcessSink, MetricSample, TelemetrySink
 from openral_observability.semconv import TRACER_NAME
 from openral_observability.setup import TelemetryConfig, install
 from openral_observability.span_pipeline import SdkSpanPipeline, SpanRecord
@@ -55,14 +55,17 @@ SEND_RECORDS: Final = 512
 class ExportProcess:
     """The parent's end: buffers tick records and sends them to the child whenever the worker's queue empties.
 
-    Thread-safe: every runner's telemetry worker may call it. If the child dies, records are
-    dropped (counted in :attr:`dropped_spans` and :attr:`dropped_samples`), with one warning.
+    Thread-safe: every runner's telemetry worker may call it. If the child dies (or cannot
+    start), records go to ``fallback``, with one warning; without a fallback they are dropped
+    and counted in :attr:`dropped_spans` and :attr:`dropped_samples`.
 
     Args:
         config: What the child installs (its ``logs`` signal is left to the parent).
+        fallback: Where records go when the child is gone: this process's own exporters.
     """
 
-    def __init__(self, config: TelemetryConfig) -> None:
+    def __init__(self, config: TelemetryConfig, fallback: TelemetrySink | None = None) -> None:
+        self._fallback = fallback
         settings = json.dumps(asdict(config))
         self._process = subprocess.Popen(
             [sys.executable, "-m", __name__, settings],
@@ -113,13 +116,14 @@ class ExportProcess:
             if not spans and not samples:
                 return
             self._spans, self._samples = [], []
-            self._send(("data", spans, samples), len(spans), len(samples))
+            if not self._send(("data", spans, samples)):
+                self._lost(spans, samples)
 
     def force_flush(self, timeout_s: float = 5.0) -> bool:
         """Send what is buffered and wait until the child's exporters have flushed it."""
         self.send()
         with self._lock:
-            if not self._send(("flush",), 0, 0):
+            if not self._send(("flush",)):
                 return False
             stdout = self._process.stdout
             assert stdout is not None
@@ -150,7 +154,7 @@ class ExportProcess:
             if self._process.stdout is not None:
                 self._process.stdout.close()
 
-    def _send(self, message: tuple[object, ...], n_spans: int, n_samples: int) -> bool:
+    def _send(self, message: tuple[object, ...]) -> bool:
         stdin = self._process.stdin
         if self._alive and stdin is not None:
             payload = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
@@ -158,12 +162,18 @@ class ExportProcess:
                 stdin.write(_HEADER.pack(len(payload)) + payload)
                 stdin.flush()
                 return True
-            except OSError as exc:  # the child is gone: keep the robot running, count what is lost
+            except OSError as exc:  # the child is gone: keep the robot running, export here instead
                 self._alive = False
-                _log.warning("telemetry export process is gone; tick telemetry is dropped from now on", error=str(exc))
-        self.dropped_spans += n_spans
-        self.dropped_samples += n_samples
+                where = "exported by this process" if self._fallback is not None else "dropped"
+                _log.warning(f"telemetry export process is gone; tick telemetry is {where} from now on", error=str(exc))
         return False
+
+    def _lost(self, spans: list[SpanRecord], samples: list[MetricSample]) -> None:
+        if self._fallback is not None:
+            self._fallback.export(spans, samples)
+            return
+        self.dropped_spans += len(spans)
+        self.dropped_samples += len(samples)
 
 
 def _read_exact(stream: IO[bytes], n: int) -> bytes | None:

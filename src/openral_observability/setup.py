@@ -27,8 +27,9 @@ import structlog
 from opentelemetry import trace
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError
-from openral_observability.deferred import offload_to
-from openral_observability.semconv import METER_NAME, SPAN_TICK
+from openral_observability.deferred import InProcessSink, offload_to
+from openral_observability.semconv import METER_NAME, SPAN_TICK, TRACER_NAME
+from openral_observability.span_pipeline import SdkSpanPipeline
 
 if TYPE_CHECKING:
     from openral_observability.export_process import ExportProcess
@@ -302,7 +303,8 @@ def setup(
     if export_process and ("traces" in config.endpoints or "metrics" in config.endpoints):
         from openral_observability.export_process import ExportProcess  # noqa: PLC0415
 
-        process = ExportProcess(config)
+        pipeline = SdkSpanPipeline.of(trace.get_tracer_provider().get_tracer(TRACER_NAME))
+        process = ExportProcess(config, fallback=InProcessSink(pipeline))
         offload_to(process)
     return Telemetry(config, providers, process)
 

@@ -10,6 +10,7 @@ from collections.abc import Iterator
 import pytest
 
 from openral_observability import semconv
+from openral_observability.deferred import MetricSample
 from openral_observability.export_process import ExportProcess
 from openral_observability.setup import TelemetryConfig, resolve_config
 from openral_observability.span_pipeline import SpanRecord
@@ -117,12 +118,43 @@ def test_an_interrupt_to_the_process_group_does_not_lose_the_buffer(
     assert len(receiver.spans()) == 3
 
 
-def test_a_dead_export_process_counts_what_it_drops_and_never_raises(config: TelemetryConfig) -> None:
-    process = ExportProcess(config)
+class RecordingSink:
+    """A fallback that keeps what it is given."""
+
+    def __init__(self) -> None:
+        self.spans: list[SpanRecord] = []
+        self.samples: list[MetricSample] = []
+
+    def export(self, spans: list[SpanRecord], samples: list[MetricSample]) -> None:
+        self.spans += spans
+        self.samples += samples
+
+    def flush(self, *, force: bool) -> None:
+        pass
+
+
+def _killed(process: ExportProcess) -> ExportProcess:
     os.kill(process.pid, signal.SIGKILL)
     deadline = time.monotonic() + 10
     while process.running and time.monotonic() < deadline:
         time.sleep(0.01)
+    return process
+
+
+def test_records_go_to_the_fallback_once_the_export_process_is_gone(config: TelemetryConfig) -> None:
+    fallback = RecordingSink()
+    process = _killed(ExportProcess(config, fallback=fallback))
+    for _ in range(3):
+        process.export(_records(), [(semconv.METRIC_TICK_DURATION, 1.0, None)])
+        process.flush()
+    assert fallback.spans == _records() * 3  # nothing lost: this process exports them instead
+    assert len(fallback.samples) == 3
+    assert (process.dropped_spans, process.dropped_samples) == (0, 0)
+    assert not process.shutdown(timeout_s=5)
+
+
+def test_without_a_fallback_a_dead_export_process_counts_what_it_drops(config: TelemetryConfig) -> None:
+    process = _killed(ExportProcess(config))
     for _ in range(3):
         process.export(_records(), [(semconv.METRIC_TICK_DURATION, 1.0, None)])
         process.flush()
