@@ -37,10 +37,11 @@ from typing import IO, Final
 import structlog
 from opentelemetry import trace
 
-from openral_observability.deferred import InProcessSink, MetricSample, TelemetrySink
+from openral_observability.deferred import MetricSample
 from openral_observability.semconv import TRACER_NAME
 from openral_observability.setup import TelemetryConfig, install
 from openral_observability.span_pipeline import SdkSpanPipeline, SpanRecord
+from openral_observability.telemetry_worker import InProcessSink, TelemetrySink
 
 _log = structlog.get_logger(__name__)
 

@@ -27,9 +27,9 @@ import structlog
 from opentelemetry import trace
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError
-from openral_observability.deferred import InProcessSink, offload_to
 from openral_observability.semconv import METER_NAME, SPAN_TICK, TRACER_NAME
 from openral_observability.span_pipeline import SdkSpanPipeline
+from openral_observability.telemetry_worker import InProcessSink, offload_to
 
 if TYPE_CHECKING:
     from openral_observability.export_process import ExportProcess

@@ -37,7 +37,8 @@ from openral_core import (
     WorldState,
 )
 from openral_observability import metrics, semconv, trace_id_hex, traceparent
-from openral_observability.deferred import TickRecorder, TickTelemetry
+from openral_observability.deferred import TickTelemetry
+from openral_observability.tick_recorder import TickRecorder
 from openral_runner.clock import Clock, SystemClock
 from openral_runner.gc_policy import BetweenTicksCollector
 from openral_runner.observer import TickObserver
