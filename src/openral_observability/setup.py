@@ -1,7 +1,7 @@
 """``setup()``: install the OpenTelemetry SDK and OTLP exporters for traces, metrics and logs.
 
-This is the only module that imports the SDK and the exporters, and it does so only inside
-``setup()``, so importing it costs nothing and a missing ``otel`` extra surfaces only when
+This module imports the SDK and the exporters only inside ``setup()`` (as does the tick sampler
+it installs), so importing it costs nothing and a missing ``otel`` extra surfaces only when
 export is asked for. Library code never calls it; the CLI does, once, at start-up.
 
 Configuration comes from the explicit arguments or, where they are ``None``, from the
@@ -18,28 +18,31 @@ from __future__ import annotations
 import atexit
 import os
 import threading
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from importlib import metadata
 from typing import TYPE_CHECKING, Any, Final, Protocol
 
 import structlog
 from opentelemetry import trace
 
-from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError
-from openral_observability.semconv import METER_NAME, SPAN_TICK, TRACER_NAME
+from openral_core import ROSDependencyMissing, ROSRuntimeError
+from openral_observability.sampling import tick_sampler
+from openral_observability.semconv import METER_NAME, TRACER_NAME
 from openral_observability.span_pipeline import SdkSpanPipeline
+from openral_observability.telemetry_config import (
+    DEFAULT_SERVICE_NAME,
+    OTEL_EXTRA,
+    PROTOCOL_GRPC,
+    PROTOCOL_HTTP,
+    PROTOCOLS,
+    TelemetryConfig,
+    resolve_config,
+)
 from openral_observability.telemetry_worker import InProcessSink, offload_to
 
 if TYPE_CHECKING:
     from openral_observability.export_process import ExportProcess
 
-PROTOCOL_HTTP: Final = "http/protobuf"
-PROTOCOL_GRPC: Final = "grpc"
-PROTOCOLS: Final = (PROTOCOL_HTTP, PROTOCOL_GRPC)
-SIGNALS: Final = ("traces", "metrics", "logs")
-OTEL_EXTRA: Final = "otel"
-DEFAULT_SERVICE_NAME: Final = "openral"
 
 MS_HISTOGRAM_BOUNDARIES: Final = (
     0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 25.0, 50.0, 100.0, 250.0, 500.0, 1000.0, 2500.0, 10000.0,
@@ -52,108 +55,6 @@ SPAN_EXPORT_BATCH_SIZE: Final = 1024
 """Spans per OTLP request: fewer, larger requests cost the exporter thread less GIL time per span."""
 
 _log = structlog.get_logger(__name__)
-
-
-@dataclass(frozen=True)
-class TelemetryConfig:
-    """What ``setup()`` will install, resolved from arguments and the environment.
-
-    Attributes:
-        endpoints: Signal (``traces``, ``metrics``, ``logs``) → full exporter URL, or ``None``
-            to let the exporter read its own ``OTEL_EXPORTER_OTLP_*`` variables. Signals not
-            listed are not exported.
-        protocols: Signal → ``http/protobuf`` or ``grpc``.
-        sample_ratio: Fraction of ticks traced (see :func:`tick_sampler`); ``None`` keeps
-            ``OTEL_TRACES_SAMPLER`` when set, else every tick is traced.
-        service_name: ``service.name`` resource attribute, ``None`` when the environment sets it.
-        metric_interval_ms: Export period of the metric reader; ``None`` for the SDK default.
-    """
-
-    endpoints: Mapping[str, str | None]
-    protocols: Mapping[str, str]
-    sample_ratio: float | None = None
-    service_name: str | None = DEFAULT_SERVICE_NAME
-    metric_interval_ms: int | None = None
-
-
-def resolve_config(
-    *,
-    endpoint: str | None = None,
-    protocol: str | None = None,
-    sample_ratio: float | None = None,
-    service_name: str = DEFAULT_SERVICE_NAME,
-    metric_interval_ms: int | None = None,
-    env: Mapping[str, str] | None = None,
-) -> TelemetryConfig | None:
-    """Decide what to export; ``None`` when nothing is configured (or ``OTEL_SDK_DISABLED=true``).
-
-    Args:
-        endpoint: Collector base URL (``http://host:4318`` for HTTP, ``http://host:4317`` for gRPC);
-            overrides every ``OTEL_EXPORTER_OTLP_*ENDPOINT`` variable.
-        protocol: ``http/protobuf`` or ``grpc``; overrides ``OTEL_EXPORTER_OTLP_*PROTOCOL``.
-        sample_ratio: In [0, 1]; fraction of ticks traced (see :func:`tick_sampler`).
-        service_name: Used unless ``OTEL_SERVICE_NAME`` or ``OTEL_RESOURCE_ATTRIBUTES`` names the service.
-        metric_interval_ms: Metric export period.
-        env: The environment to read (``os.environ`` by default).
-
-    Raises:
-        ROSConfigError: Unknown protocol or exporter name, or a ratio outside [0, 1].
-    """
-    env = os.environ if env is None else env
-    if env.get("OTEL_SDK_DISABLED", "").strip().lower() == "true":
-        return None
-    if sample_ratio is not None and not 0.0 <= sample_ratio <= 1.0:
-        raise ROSConfigError(f"must be within [0, 1], got {sample_ratio}", field="trace_sample_ratio")
-    if metric_interval_ms is not None and metric_interval_ms <= 0:
-        raise ROSConfigError(f"must be positive, got {metric_interval_ms}", field="metric_interval_ms")
-    endpoints: dict[str, str | None] = {}
-    protocols: dict[str, str] = {}
-    for signal in SIGNALS:
-        exporter = env.get(f"OTEL_{signal.upper()}_EXPORTER", "otlp").strip().lower() or "otlp"
-        if exporter == "none":
-            continue
-        if exporter != "otlp":
-            raise ROSConfigError(
-                f"exporter '{exporter}' is not supported",
-                field=f"OTEL_{signal.upper()}_EXPORTER",
-                hint="use otlp (the default) or none",
-            )
-        proto = (
-            protocol
-            or env.get(f"OTEL_EXPORTER_OTLP_{signal.upper()}_PROTOCOL")
-            or env.get("OTEL_EXPORTER_OTLP_PROTOCOL")
-            or PROTOCOL_HTTP
-        ).strip()
-        if proto not in PROTOCOLS:
-            raise ROSConfigError(
-                f"OTLP protocol '{proto}' is not supported",
-                field="otlp_protocol",
-                hint=f"use one of: {', '.join(PROTOCOLS)}",
-            )
-        if endpoint:
-            endpoints[signal] = _signal_url(endpoint, signal, proto)
-        elif env.get(f"OTEL_EXPORTER_OTLP_{signal.upper()}_ENDPOINT") or env.get("OTEL_EXPORTER_OTLP_ENDPOINT"):
-            endpoints[signal] = None  # the exporter reads the variable itself, with its per-signal path rules
-        else:
-            continue
-        protocols[signal] = proto
-    if not endpoints:
-        return None
-    named_in_env = bool(env.get("OTEL_SERVICE_NAME")) or "service.name=" in env.get("OTEL_RESOURCE_ATTRIBUTES", "")
-    return TelemetryConfig(
-        endpoints=endpoints,
-        protocols=protocols,
-        sample_ratio=sample_ratio,
-        service_name=None if named_in_env else service_name,
-        metric_interval_ms=metric_interval_ms,
-    )
-
-
-def _signal_url(endpoint: str, signal: str, protocol: str) -> str:
-    """HTTP exporters given an explicit URL post to it as is, so add the signal path; gRPC takes host:port."""
-    if protocol == PROTOCOL_GRPC:
-        return endpoint
-    return f"{endpoint.rstrip('/')}/v1/{signal}"
 
 
 class _Provider(Protocol):
@@ -375,71 +276,6 @@ def install(config: TelemetryConfig) -> list[_Provider]:
         _logs.set_logger_provider(logger_provider)
         providers.append(logger_provider)
     return providers
-
-
-def tick_sampler(ratio: float) -> Any:
-    """A sampler that traces ``ratio`` of the ticks, each tick whole, independently of its parent.
-
-    * ``rskill.tick`` spans: every ``1/ratio``-th tick is recorded (a deterministic credit
-      counter, so ``0.1`` traces exactly one tick in ten), whether or not the enclosing span
-      (``cli.command``) is, and whatever the trace id: all ticks of one deployment share the
-      ``cli.command`` trace, so a trace-id ratio would keep all of them or none.
-    * Any other span with a parent follows the parent: a traced tick is traced with all its
-      phase spans, an untraced tick costs only non-recording spans.
-    * Other root spans (``cli.command``) are recorded unless ``ratio`` is 0, so traced ticks
-      always have their parent.
-
-    A ratio of 1 records everything, like the SDK's default, with a cheaper decision per span.
-
-    Raises:
-        ROSDependencyMissing: The ``otel`` extra is not installed.
-    """
-    try:
-        from opentelemetry.sdk.trace.sampling import Decision, Sampler, SamplingResult  # noqa: PLC0415
-    except ImportError as exc:
-        raise ROSDependencyMissing(exc.name or "opentelemetry.sdk", extra=OTEL_EXTRA, needed_for="sampling") from exc
-
-    record = SamplingResult(Decision.RECORD_AND_SAMPLE)
-    drop = SamplingResult(Decision.DROP)
-
-    class TickSampler(Sampler):
-        def __init__(self) -> None:
-            self._credit = 1.0 - ratio if ratio > 0.0 else 0.0  # the first tick is traced unless ratio is 0
-
-        def should_sample(  # noqa: PLR0917  (the SDK's signature)
-            self,
-            parent_context: Any,
-            trace_id: int,
-            name: str,
-            kind: Any = None,
-            attributes: Any = None,
-            links: Any = None,
-            trace_state: Any = None,
-        ) -> Any:
-            parent = trace.get_current_span(parent_context).get_span_context()
-            if name == SPAN_TICK:
-                self._credit += ratio
-                if self._credit >= 1.0:
-                    self._credit -= 1.0
-                    sampled = True
-                else:
-                    sampled = False
-            elif parent.is_valid:
-                sampled = parent.trace_flags.sampled
-            else:
-                sampled = ratio > 0.0
-            state = parent.trace_state if parent.is_valid else None
-            if not sampled:
-                return SamplingResult(Decision.DROP, None, state) if state else drop
-            if not state and not attributes:
-                return record
-            # The SDK takes the span's start attributes from the sampling result.
-            return SamplingResult(Decision.RECORD_AND_SAMPLE, attributes, state)
-
-        def get_description(self) -> str:
-            return f"OpenRALTickSampler{{{ratio}}}"
-
-    return TickSampler()
 
 
 def _exporter_classes(config: TelemetryConfig) -> dict[str, Callable[[str | None], Any]]:

@@ -21,7 +21,6 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Final
 
-import numpy as np
 import structlog
 from opentelemetry import context, trace
 from opentelemetry.trace import Span, Status, StatusCode
@@ -42,7 +41,8 @@ from openral_observability.tick_recorder import TickRecorder
 from openral_runner.clock import Clock, SystemClock
 from openral_runner.gc_policy import BetweenTicksCollector
 from openral_runner.observer import TickObserver
-from openral_runner.stats import RollingSamples
+from openral_runner.stats import RunStats
+from openral_runner.tick_span import tick_span_attributes
 
 _log = structlog.get_logger(__name__)
 
@@ -72,21 +72,6 @@ class InferenceRunnerBase(ABC):
         garbage_collection: When Python's garbage collector may run during ``run()``; by default
             only in the idle time between ticks (:mod:`openral_runner.gc_policy`).
     """
-
-    _missed_slots: int
-    _deadline_misses: int
-    _budget_violations: int
-    _dropped: int
-    _withheld: int
-    _failed: int
-    _consecutive_failures: int
-    _stale_reads: int
-    _safety_violations: int
-    _trace_id: str | None
-    _run_t0: float
-    _run_t_end: float
-    _first_start_s: float
-    _last_start_s: float
 
     def __init__(
         self,
@@ -134,10 +119,7 @@ class InferenceRunnerBase(ABC):
         self.recent_ticks: deque[TickResult] = deque(maxlen=_RECENT_TICKS)
         self.observers: list[TickObserver] = []
         self._last_world: WorldState | None = None
-        self._tick_ms = RollingSamples()
-        self._inference_ms = RollingSamples()
-        self._jitter_us = RollingSamples()
-        self._overhead_us = RollingSamples()
+        self._stats = RunStats()
         self._reset_counters()
 
     # -- lifecycle -----------------------------------------------------------------------
@@ -273,7 +255,7 @@ class InferenceRunnerBase(ABC):
         if late_s <= 0.0:
             return True
         self._lateness_ms = late_s * 1e3
-        self._deadline_misses += 1
+        self._stats.deadline_misses += 1
         metrics.add(semconv.METRIC_DEADLINE_MISSES, 1, self._metric_attrs)
         trace.get_current_span().add_event(
             semconv.EVENT_DEADLINE_MISSED,
@@ -314,71 +296,44 @@ class InferenceRunnerBase(ABC):
     def _account(self, result: TickResult, span: Span) -> dict[str, Any] | None:
         """Count the tick; returns the tick span's attributes when it is recorded."""
         phases_ms = result.sensors_ms + result.world_state_ms + result.inference_ms + result.safety_ms + result.hal_ms
-        self._tick_ms.add(result.tick_ms)
-        self._inference_ms.add(result.inference_ms)
-        self._overhead_us.add(max(0.0, result.tick_ms - phases_ms) * 1e3)
+        self._stats.tick_ms.add(result.tick_ms)
+        self._stats.inference_ms.add(result.inference_ms)
+        self._stats.overhead_us.add(max(0.0, result.tick_ms - phases_ms) * 1e3)
         reason = result.withheld_reason
         if reason is not None:
-            self._withheld += 1
+            self._stats.withheld += 1
             metrics.add(
                 semconv.METRIC_ACTIONS_WITHHELD, 1, {**self._metric_attrs, semconv.ATTR_WITHHELD_REASON: reason}
             )
             if reason == "deadline":
-                self._dropped += 1
+                self._stats.dropped += 1
             if reason in FAULT_REASONS:
-                self._failed += 1
-                self._consecutive_failures += 1
-                if self._consecutive_failures >= self.max_consecutive_failures:
+                self._stats.failed += 1
+                self._stats.consecutive_failures += 1
+                if self._stats.consecutive_failures >= self.max_consecutive_failures:
                     _log.error(
                         "stopping: too many consecutive failed ticks",
-                        failures=self._consecutive_failures,
+                        failures=self._stats.consecutive_failures,
                         last_reason=reason,
                     )
                     self.request_stop("faults")
             else:
-                self._consecutive_failures = 0
+                self._stats.consecutive_failures = 0
         else:
-            self._consecutive_failures = 0
-        self._stale_reads += len(result.stale_sensors)
-        self._safety_violations += len(result.safety_violations)
+            self._stats.consecutive_failures = 0
+        self._stats.stale_reads += len(result.stale_sensors)
+        self._stats.safety_violations += len(result.safety_violations)
         if self.latency_budget_ms is not None and result.tick_ms > self.latency_budget_ms:
-            self._budget_violations += 1
+            self._stats.budget_violations += 1
             metrics.add(semconv.METRIC_BUDGET_VIOLATIONS, 1, self._metric_attrs)
         telemetry = self._telemetry
         telemetry.record_ms(semconv.METRIC_TICK_DURATION, result.tick_ms, self._metric_attrs)
         telemetry.record_ms(semconv.METRIC_INFERENCE_DURATION, result.inference_ms, self._metric_attrs)
-        if self._trace_id is None:
-            self._trace_id = trace_id_hex(span)
-        if span.is_recording():
-            attributes: dict[str, Any] = {
-                **self._metric_attrs,
-                semconv.ATTR_TICK_IDX: result.tick_idx,
-                semconv.ATTR_TICK_MS: result.tick_ms,
-                semconv.ATTR_SENSORS_MS: result.sensors_ms,
-                semconv.ATTR_WORLD_STATE_MS: result.world_state_ms,
-                semconv.ATTR_INFERENCE_MS: result.inference_ms,
-                semconv.ATTR_SAFETY_MS: result.safety_ms,
-                semconv.ATTR_HAL_MS: result.hal_ms,
-                semconv.ATTR_ACTION_APPLIED: result.action_applied,
-                semconv.ATTR_SAFETY_VIOLATIONS: len(result.safety_violations),
-            }
-            if reason is not None:
-                attributes[semconv.ATTR_WITHHELD_REASON] = reason
-            if result.deadline_missed:
-                attributes[semconv.ATTR_LATENESS_MS] = result.lateness_ms
-            for name, attr in (
-                ("step_idx", semconv.ATTR_STEP_IDX),
-                ("episode_idx", semconv.ATTR_EPISODE_IDX),
-                ("reward", semconv.ATTR_REWARD),
-                ("terminated", semconv.ATTR_TERMINATED),
-                ("truncated", semconv.ATTR_TRUNCATED),
-            ):
-                value = getattr(result, name)
-                if value is not None:
-                    attributes[attr] = value
-            self.recent_ticks.append(result)
-            return attributes
+        if self._stats.trace_id is None:
+            self._stats.trace_id = trace_id_hex(span)
         self.recent_ticks.append(result)
+        if span.is_recording():
+            return tick_span_attributes(result, self._metric_attrs)
         return None
 
     # -- the loop ------------------------------------------------------------------------
@@ -413,7 +368,7 @@ class InferenceRunnerBase(ABC):
         clock = self._clock
         period = self.period_s
         t0 = self._schedule_origin()
-        self._run_t0 = t0
+        self._stats.run_t0 = t0
         end_limit = None if duration_s is None else t0 + duration_s
         slot = 0
         n = 0
@@ -431,20 +386,20 @@ class InferenceRunnerBase(ABC):
             clock.sleep_until(slot_start)
             start = clock.now()
             if n == 0:
-                self._first_start_s = start
-            self._last_start_s = start
-            self._jitter_us.add((start - slot_start) * 1e6)
+                self._stats.first_start_s = start
+            self._stats.last_start_s = start
+            self._stats.jitter_us.add((start - slot_start) * 1e6)
             try:
                 self._run_tick(start, slot_start + period)
             except ROSDeadlineMissed as exc:
                 n += 1
-                self._run_t_end = clock.now()
+                self._stats.run_t_end = clock.now()
                 exc.run_result = self._build_run_result(n, "deadline")
                 self._recorder.worker.flush()
                 raise
             n += 1
             end = clock.now()
-            self._run_t_end = end
+            self._stats.run_t_end = end
             if self._should_terminate():
                 stop_reason = "terminated"
                 break
@@ -453,7 +408,7 @@ class InferenceRunnerBase(ABC):
                 next_slot = int((end - t0) / period) + 1
                 skipped = next_slot - slot - 1
                 if skipped > 0:
-                    self._missed_slots += skipped
+                    self._stats.missed_slots += skipped
                     metrics.add(semconv.METRIC_MISSED_SLOTS, skipped, self._metric_attrs)
             slot = next_slot
             if collector is not None:
@@ -463,96 +418,27 @@ class InferenceRunnerBase(ABC):
     # -- results -------------------------------------------------------------------------
 
     def _reset_counters(self) -> None:
-        self._missed_slots = 0
-        self._deadline_misses = 0
-        self._budget_violations = 0
-        self._dropped = 0
-        self._withheld = 0
-        self._failed = 0
-        self._consecutive_failures = 0
-        self._stale_reads = 0
-        self._safety_violations = 0
-        self._trace_id = None
-        self._run_t0 = 0.0
-        self._run_t_end = 0.0
-        self._first_start_s = 0.0
-        self._last_start_s = 0.0
-        for samples in (self._tick_ms, self._inference_ms, self._jitter_us, self._overhead_us):
-            samples.clear()
+        self._stats.reset()
         self.recent_ticks.clear()
 
     def _build_run_result(self, n_ticks: int, stop_reason: str) -> RunResult:
-        duration = max(0.0, self._run_t_end - self._run_t0)
-        return RunResult(
+        return self._stats.result(
             runner_name=self.runner_name,
             skill_id=self.skill_id,
             rate_hz=self.rate_hz,
             n_ticks=n_ticks,
-            duration_s=duration,
-            effective_rate_hz=self._effective_rate(n_ticks),
-            tick_ms_mean=self._tick_ms.mean,
-            tick_ms_p50=self._tick_ms.percentile(50),
-            tick_ms_p99=self._tick_ms.percentile(99),
-            tick_ms_max=self._tick_ms.max,
-            inference_ms_mean=self._inference_ms.mean,
-            inference_ms_p50=self._inference_ms.percentile(50),
-            inference_ms_p99=self._inference_ms.percentile(99),
-            inference_ms_max=self._inference_ms.max,
-            start_jitter_us_p50=self._jitter_us.percentile(50),
-            start_jitter_us_p99=self._jitter_us.percentile(99),
-            start_jitter_us_max=self._jitter_us.max,
-            overhead_us_mean=self._overhead_us.mean,
-            missed_slots=self._missed_slots,
-            deadline_misses=self._deadline_misses,
-            budget_violations=self._budget_violations,
-            dropped_actions=self._dropped,
-            withheld_actions=self._withheld,
-            stale_reads=self._stale_reads,
-            safety_violations=self._safety_violations,
-            failed_ticks=self._failed,
             stop_reason=stop_reason,
-            trace_id=self._trace_id,
             metadata=dict(self.metadata),
         )
-
-    def _effective_rate(self, n_ticks: int) -> float:
-        """Achieved rate: intervals between the first and the last tick start, per second."""
-        span_s = self._last_start_s - self._first_start_s
-        if n_ticks < 2 or span_s <= 0:
-            return 0.0
-        return (n_ticks - 1) / span_s
 
     def live_status(self) -> dict[str, float]:
         """A cheap snapshot for a status display, readable from another thread while running.
 
-        ``rate_hz`` is the average since the run started, ``recent_rate_hz`` over about the last
-        two seconds; tick percentiles cover the most recent ticks (up to 4096); ``stale_sensors``
-        counts the sensors stale in the latest tick, ``stale_reads`` every stale read so far.
+        See :meth:`openral_runner.stats.RunStats.live_status` for what each figure means.
         """
-        recent = list(self.recent_ticks)  # one C-level copy: atomic with respect to the tick thread
-        n = len(self._tick_ms)
-        elapsed = self._clock.now() - self._run_t0 if self._run_t0 else 0.0
-        tick_ms = np.fromiter((t.tick_ms for t in recent), dtype=np.float64, count=len(recent))
-        recent_rate = 0.0
-        window = recent[-(int(2.0 * self.rate_hz) + 1) :]
-        if len(window) >= 2 and window[-1].start_ns > window[0].start_ns:
-            recent_rate = (len(window) - 1) / ((window[-1].start_ns - window[0].start_ns) / 1e9)
-        p50, p99 = np.percentile(tick_ms, (50, 99)) if recent else (0.0, 0.0)
-        return {
-            "ticks": float(n),
-            "target_hz": self.rate_hz,
-            "rate_hz": n / elapsed if elapsed > 0 else 0.0,
-            "recent_rate_hz": recent_rate,
-            "tick_ms_p50": float(p50),
-            "tick_ms_p99": float(p99),
-            "deadline_misses": float(self._deadline_misses),
-            "missed_slots": float(self._missed_slots),
-            "dropped_actions": float(self._dropped),
-            "withheld_actions": float(self._withheld),
-            "stale_sensors": float(len(recent[-1].stale_sensors)) if recent else 0.0,
-            "stale_reads": float(self._stale_reads),
-            "safety_violations": float(self._safety_violations),
-        }
+        stats = self._stats
+        elapsed = self._clock.now() - stats.run_t0 if stats.run_t0 else 0.0
+        return stats.live_status(list(self.recent_ticks), elapsed_s=elapsed, rate_hz=self.rate_hz)
 
     def _require_active(self) -> None:
         if not self._active:

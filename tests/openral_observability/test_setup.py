@@ -13,9 +13,8 @@ import pytest
 from opentelemetry import _logs, metrics, trace
 from opentelemetry.proto.collector.trace.v1 import trace_service_pb2, trace_service_pb2_grpc
 
-from openral_core import ROSConfigError, ROSRuntimeError
-from openral_observability import semconv
-from openral_observability.setup import PROTOCOL_GRPC, PROTOCOL_HTTP, resolve_config, setup, tick_sampler
+from openral_core import ROSRuntimeError
+from openral_observability.setup import PROTOCOL_GRPC, setup
 from openral_observability.testing import OTLPReceiver
 
 HTTP = "http://collector:4318"
@@ -39,66 +38,6 @@ def run_python(code: str, *args: str, env: dict[str, str] | None = None) -> subp
         timeout=60,
         check=False,
     )
-
-
-# --- resolution -----------------------------------------------------------------------------------
-
-
-def test_nothing_configured_resolves_to_nothing() -> None:
-    assert resolve_config(env={}) is None
-    assert resolve_config(protocol=PROTOCOL_GRPC, sample_ratio=0.5, env={}) is None
-    assert resolve_config(endpoint=HTTP, env={"OTEL_SDK_DISABLED": "true"}) is None
-    disabled = {f"OTEL_{s}_EXPORTER": "none" for s in ("TRACES", "METRICS", "LOGS")}
-    assert resolve_config(endpoint=HTTP, env=disabled) is None
-
-
-def test_explicit_http_endpoint_gets_the_signal_paths() -> None:
-    config = resolve_config(endpoint=HTTP + "/", sample_ratio=0.25, env={})
-    assert config is not None
-    assert dict(config.endpoints) == {s: f"{HTTP}/v1/{s}" for s in ("traces", "metrics", "logs")}
-    assert set(config.protocols.values()) == {PROTOCOL_HTTP}
-    assert config.sample_ratio == 0.25
-    assert config.service_name == "openral"
-
-
-def test_grpc_endpoint_is_used_as_is() -> None:
-    config = resolve_config(endpoint="http://collector:4317", protocol=PROTOCOL_GRPC, env={})
-    assert config is not None
-    assert set(config.endpoints.values()) == {"http://collector:4317"}
-    assert set(config.protocols.values()) == {PROTOCOL_GRPC}
-
-
-def test_environment_endpoints_are_left_to_the_exporters() -> None:
-    config = resolve_config(
-        env={
-            "OTEL_EXPORTER_OTLP_TRACES_ENDPOINT": "http://t:4318/v1/traces",
-            "OTEL_EXPORTER_OTLP_PROTOCOL": "grpc",
-            "OTEL_EXPORTER_OTLP_TRACES_PROTOCOL": "http/protobuf",
-            "OTEL_SERVICE_NAME": "arm-7",
-        }
-    )
-    assert config is not None
-    assert dict(config.endpoints) == {"traces": None}  # only the signal with an endpoint is exported
-    assert dict(config.protocols) == {"traces": PROTOCOL_HTTP}  # the per-signal variable wins
-    assert config.service_name is None  # the SDK reads OTEL_SERVICE_NAME itself
-    config = resolve_config(env={"OTEL_EXPORTER_OTLP_ENDPOINT": HTTP, "OTEL_LOGS_EXPORTER": "none"})
-    assert config is not None
-    assert set(config.endpoints) == {"traces", "metrics"}
-
-
-@pytest.mark.parametrize(
-    ("kwargs", "env", "field"),
-    [
-        ({"protocol": "http/json"}, {}, "otlp_protocol"),
-        ({}, {"OTEL_EXPORTER_OTLP_PROTOCOL": "thrift"}, "otlp_protocol"),
-        ({"sample_ratio": 1.5}, {}, "trace_sample_ratio"),
-        ({}, {"OTEL_TRACES_EXPORTER": "zipkin"}, "OTEL_TRACES_EXPORTER"),
-    ],
-)
-def test_bad_settings_are_config_errors(kwargs: dict[str, Any], env: dict[str, str], field: str) -> None:
-    with pytest.raises(ROSConfigError) as info:
-        resolve_config(endpoint=HTTP, env=env, **kwargs)
-    assert info.value.field == field
 
 
 @pytest.mark.usefixtures("clean_env")
@@ -247,37 +186,3 @@ def test_shutdown_is_bounded_when_the_collector_is_down() -> None:
     assert ok == "False"
     assert "timed out" in proc.stdout
     assert float(took) < 2.0
-
-
-def _sampled_run(ratio: float, ticks: int) -> list[Any]:
-    """Spans recorded for ``ticks`` ticks (each with one phase child) under a ``cli.command`` root."""
-    from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415
-    from opentelemetry.sdk.trace.export import SimpleSpanProcessor  # noqa: PLC0415
-    from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter  # noqa: PLC0415
-
-    exporter = InMemorySpanExporter()
-    provider = TracerProvider(sampler=tick_sampler(ratio))
-    provider.add_span_processor(SimpleSpanProcessor(exporter))
-    tr = provider.get_tracer("test")
-    with tr.start_as_current_span(semconv.SPAN_CLI_COMMAND, attributes={semconv.ATTR_CLI_COMMAND: "deploy"}):
-        for idx in range(ticks):
-            with tr.start_as_current_span(semconv.SPAN_TICK, attributes={semconv.ATTR_TICK_IDX: idx}):
-                tr.start_span(semconv.SPAN_HAL_SEND_ACTION).end()
-    provider.shutdown()
-    return list(exporter.get_finished_spans())
-
-
-def test_tick_sampler_traces_the_ratio_of_ticks_whole_under_the_kept_root() -> None:
-    spans = _sampled_run(0.25, 8)
-    (root,) = [s for s in spans if s.name == semconv.SPAN_CLI_COMMAND]
-    assert root.attributes[semconv.ATTR_CLI_COMMAND] == "deploy"  # start attributes survive sampling
-    ticks = [s for s in spans if s.name == semconv.SPAN_TICK]
-    assert [t.attributes[semconv.ATTR_TICK_IDX] for t in ticks] == [0, 4]
-    assert all(t.parent.span_id == root.context.span_id for t in ticks)
-    children = [s for s in spans if s.name == semconv.SPAN_HAL_SEND_ACTION]
-    assert sorted(c.parent.span_id for c in children) == sorted(t.context.span_id for t in ticks)
-
-
-def test_tick_sampler_at_one_traces_everything_and_at_zero_nothing() -> None:
-    assert len(_sampled_run(1.0, 5)) == 1 + 5 * 2
-    assert _sampled_run(0.0, 5) == []
