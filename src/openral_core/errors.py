@@ -35,19 +35,31 @@ class ROSConfigError(ROSError):
 
 
 class ROSDependencyMissing(ROSConfigError):
-    """An optional dependency needed by the selected configuration is not installed."""
+    """An optional dependency needed by the selected configuration is not installed.
 
-    def __init__(self, module: str, *, extra: str, needed_for: str) -> None:
+    Args:
+        module: The Python module that failed to import.
+        extra: The openral extra that installs it; ``None`` when no extra can (a module from
+            outside PyPI), and then ``install`` says what to do.
+        needed_for: What the configuration asked for that needs it.
+        install: How to install it, when not through an extra.
+    """
+
+    def __init__(self, module: str, *, extra: str | None, needed_for: str, install: str | None = None) -> None:
         self.module = module
         self.extra = extra
         self.needed_for = needed_for
+        self.install = install
+        if install is None and extra is None:
+            raise ValueError("ROSDependencyMissing needs an extra or install instructions")
         super().__init__(
             f"{needed_for} needs the Python module '{module}', which is not installed",
-            hint=f"install the extra: uv sync --extra {extra}  (or pip install 'openral[{extra}]')",
+            hint=install or f"install the extra: uv sync --extra {extra}  (or pip install 'openral[{extra}]')",
         )
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return (_rebuild, (type(self), (self.module,), {"extra": self.extra, "needed_for": self.needed_for}))
+        kwargs = {"extra": self.extra, "needed_for": self.needed_for, "install": self.install}
+        return (_rebuild, (type(self), (self.module,), kwargs))
 
 
 class ROSLicenseError(ROSConfigError):

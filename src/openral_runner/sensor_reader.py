@@ -6,7 +6,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Protocol, runtime_checkable
 
-from openral_core import ROSPerceptionStale, ROSSyncError, SensorFrame
+from openral_core import ROSPerceptionStale, ROSSyncError, SensorFrame, SensorReaderConfig
+from openral_core.config import ModelT, validate_model
 
 
 @runtime_checkable
@@ -46,6 +47,21 @@ class SensorReader(Protocol):
             ROSPerceptionStale: No such frame by the deadline.
             ROSRuntimeError: The reader is closed or failed.
         """
+
+
+def backend_params_field(config: SensorReaderConfig) -> str:
+    """Where a sensor's ``backend_params`` sit in the deployment, as config errors name it."""
+    return f"sensors[{config.sensor_id}].backend_params"
+
+
+def validate_backend_params(model: type[ModelT], config: SensorReaderConfig, *, backend: str) -> ModelT:
+    """``config.backend_params`` validated as ``model``; an error names ``sensors[<id>].backend_params.<key>``."""
+    return validate_model(
+        model,
+        dict(config.backend_params),
+        source=f"the {backend} sensor backend",
+        field_prefix=backend_params_field(config),
+    )
 
 
 def read_synced_set(

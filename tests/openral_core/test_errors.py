@@ -69,6 +69,14 @@ def test_dependency_missing_names_the_module_and_the_extra() -> None:
     assert (error.module, error.extra) == ("mujoco", "twin")
 
 
+def test_dependency_outside_pypi_says_how_to_get_it_instead_of_an_extra() -> None:
+    error = ROSDependencyMissing("rclpy", extra=None, needed_for="the ros2_image backend", install="source ROS 2")
+    assert "source ROS 2" in str(error)
+    assert "uv sync" not in str(error)
+    with pytest.raises(ValueError, match="extra or install"):
+        ROSDependencyMissing("rclpy", extra=None, needed_for="x")
+
+
 def test_perception_stale_says_whether_a_frame_ever_arrived() -> None:
     never = ROSPerceptionStale("front", age_ms=None, max_age_ms=50.0)
     assert str(never) == "sensor 'front' has not delivered a frame yet"
@@ -98,6 +106,7 @@ def test_deadline_missed_carries_the_partial_run() -> None:
     [
         ROSConfigError("bad", field="rate_hz", hint="use 30"),
         ROSDependencyMissing("cv2", extra="opencv", needed_for="the OpenCV reader"),
+        ROSDependencyMissing("rclpy", extra=None, needed_for="the ROS 2 reader", install="source ROS 2"),
         ROSPerceptionStale("front", age_ms=120.0, max_age_ms=50.0),
         ROSSafetyViolation("over", check_name="joint_limit", severity="critical"),
         ROSDeadlineMissed("late", tick_result=TickResult(tick_idx=1)),

@@ -46,7 +46,6 @@ from openral_core import (
     SensorFrame,
     SensorReaderConfig,
 )
-from openral_core.config import validate_model
 from openral_hal.mujoco_twin import MujocoTwinHAL
 from openral_runner.backends.mujoco_render import (
     GLBackend,
@@ -56,6 +55,7 @@ from openral_runner.backends.mujoco_render import (
 )
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
 from openral_runner.realtime import leave_realtime_scheduling
+from openral_runner.sensor_reader import backend_params_field, validate_backend_params
 
 try:
     import mujoco
@@ -180,13 +180,8 @@ class MujocoCameraSensorReader(SlotReader):
             ROSConfigError: A wrong parameter (named, with the allowed keys), another HAL, or
                 an unknown camera (the message lists the model's cameras).
         """
-        prefix = f"sensors[{config.sensor_id}].backend_params"
-        params = validate_model(
-            MujocoCameraParams,
-            dict(config.backend_params),
-            source="the mujoco_camera sensor backend",
-            field_prefix=prefix,
-        )
+        prefix = backend_params_field(config)
+        params = validate_backend_params(MujocoCameraParams, config, backend="mujoco_camera")
         twin = _require_twin(hal, config.sensor_id)
         camera = params.camera
         if camera is None:

@@ -32,8 +32,8 @@ from openral_core import (
     ROSRuntimeError,
     SensorReaderConfig,
 )
-from openral_core.config import validate_model
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
+from openral_runner.sensor_reader import validate_backend_params
 
 try:
     import cv2
@@ -192,12 +192,7 @@ class OpenCVThreadSensorReader(SlotReader):
         Raises:
             ROSConfigError: A wrong or missing parameter; the message names it and the allowed keys.
         """
-        params = validate_model(
-            OpenCVThreadParams,
-            dict(config.backend_params),
-            source="the opencv_thread backend",
-            field_prefix=f"sensors[{config.sensor_id}].backend_params",
-        )
+        params = validate_backend_params(OpenCVThreadParams, config, backend="opencv_thread")
         device = params.device
         if isinstance(device, str) and _is_file_path(device) and base_dir is not None:
             path = Path(device).expanduser()

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import array
+import importlib
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from openral_core import FrameEncoding, ROSConfigError
+from openral_core import FrameEncoding, ROSConfigError, ROSDependencyMissing, SensorReaderConfig
 from openral_runner.backends.ros2.convert import image_to_frame, ros_stamp_to_monotonic_ns, stamp_to_ns
+from openral_runner.backends.ros2.params import Ros2ImageParams
+from openral_runner.sensor_reader import validate_backend_params
 
 
 def message(width: int, height: int, encoding: str, step: int, data: bytes | array.array) -> SimpleNamespace:
@@ -52,6 +55,31 @@ def test_header_stamp_keeps_its_age_on_the_monotonic_clock() -> None:
     # The message was stamped 30 ms before "now" on the ROS clock.
     mono = ros_stamp_to_monotonic_ns(header, ros_now_ns=header + 30_000_000, monotonic_now_ns=5_000_000_000)
     assert mono == 5_000_000_000 - 30_000_000
+
+
+def test_backend_params_are_checked_without_ros2_and_errors_name_the_sensor() -> None:
+    good = SensorReaderConfig(sensor_id="wrist", backend="ros2_image", backend_params={"topic": "/wrist/image_raw"})
+    params = validate_backend_params(Ros2ImageParams, good, backend="ros2_image")
+    assert (params.topic, params.qos) == ("/wrist/image_raw", "sensor_data")
+    bad = good.model_copy(update={"backend_params": {"topic": "/wrist/image_raw", "qos": "best"}})
+    with pytest.raises(ROSConfigError) as info:
+        validate_backend_params(Ros2ImageParams, bad, backend="ros2_image")
+    assert info.value.field == "sensors[wrist].backend_params.qos"
+    assert "reliable" in str(info.value)
+
+
+def test_without_ros2_the_error_says_to_source_it_not_to_install_an_extra() -> None:
+    try:
+        import rclpy  # noqa: F401, PLC0415
+    except ImportError:
+        pass
+    else:
+        pytest.skip("rclpy is installed: the backend imports")
+    with pytest.raises(ROSDependencyMissing) as info:
+        importlib.import_module("openral_runner.backends.ros2.reader")
+    assert info.value.extra is None
+    assert "source a ROS 2 distribution" in str(info.value)
+    assert "uv sync" not in str(info.value)
 
 
 def test_reader_needs_rclpy() -> None:

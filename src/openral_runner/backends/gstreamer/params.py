@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from openral_core import FrameEncoding, ROSConfigError, SensorReaderConfig
 from openral_core.config import config_error_from_validation
 from openral_runner.backends.gstreamer.pipeline import Codec, PipelineSpec, PixelFormat, Platform, Source
+from openral_runner.sensor_reader import backend_params_field
 
 FORMAT_OF_ENCODING: dict[FrameEncoding, PixelFormat] = {
     FrameEncoding.BGR8: PixelFormat.BGR,
@@ -98,7 +99,7 @@ def settings_from_config(config: SensorReaderConfig, *, base_dir: Path | None = 
         ROSConfigError: A wrong or missing parameter, named as ``sensors[<id>].backend_params.<key>``.
     """
     sid = config.sensor_id
-    prefix = f"sensors[{sid}].backend_params"
+    prefix = backend_params_field(config)
     params = _validate(GStreamerParams, dict(config.backend_params), prefix=prefix)
     output = FORMAT_OF_ENCODING.get(config.encoding)
     if output is None:

@@ -10,14 +10,13 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
-from typing import Any, Literal
-
-from pydantic import BaseModel, ConfigDict, Field
+from typing import Any
 
 from openral_core import ROSDependencyMissing, ROSRuntimeError, SensorReaderConfig
-from openral_core.config import validate_model
 from openral_runner.backends.ros2.convert import image_to_frame, ros_stamp_to_monotonic_ns, stamp_to_ns
+from openral_runner.backends.ros2.params import Ros2ImageParams
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader
+from openral_runner.sensor_reader import validate_backend_params
 
 try:
     import rclpy
@@ -26,18 +25,11 @@ try:
     from sensor_msgs.msg import Image
 except ImportError as exc:  # pragma: no cover - exercised only without ROS 2
     raise ROSDependencyMissing(
-        "rclpy", extra="ros2 (source a ROS 2 distribution: no PyPI package)", needed_for="the ros2_image backend"
+        "rclpy",
+        extra=None,
+        needed_for="the ros2_image backend",
+        install="source a ROS 2 distribution first (e.g. source /opt/ros/jazzy/setup.bash); rclpy is not on PyPI",
     ) from exc
-
-
-class Ros2ImageParams(BaseModel):
-    """``backend_params`` of the ``ros2_image`` backend."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    topic: str = Field(min_length=1, description="sensor_msgs/Image topic to subscribe to")
-    qos: Literal["sensor_data", "reliable"] = "sensor_data"
-    node_name: str | None = None
 
 
 class Ros2ImageSensorReader(SlotReader):
@@ -76,9 +68,7 @@ class Ros2ImageSensorReader(SlotReader):
         cls, config: SensorReaderConfig, *, hal: Any, robot: Any, base_dir: Path | None = None
     ) -> Ros2ImageSensorReader:
         """Plugin constructor; ``backend_params`` are validated as :class:`Ros2ImageParams`."""
-        params = validate_model(
-            Ros2ImageParams, dict(config.backend_params), source=f"sensors[{config.sensor_id}].backend_params"
-        )
+        params = validate_backend_params(Ros2ImageParams, config, backend="ros2_image")
         return cls(
             sensor_id=config.sensor_id,
             topic=params.topic,
