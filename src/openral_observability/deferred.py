@@ -205,11 +205,6 @@ class TickTelemetry:
         self.spans: list[DeferredSpan] = [] if spans is None else spans
         self.samples: list[MetricSample] = []
 
-    @property
-    def record_spans(self) -> bool:
-        """Whether this tick's phases get spans of their own."""
-        return self._start_span is not None
-
     def start_span(self, name: str, attributes: Attributes = None) -> Span:
         """A child span of the tick, or the tick's own span when the tick is not recorded."""
         start = self._start_span

@@ -121,7 +121,3 @@ class TickRecorder:
         batch.finish(attributes)
         if batch.pending:
             self.worker.submit(batch)
-
-    def start_live_span(self, name: str, attributes: Attributes = None) -> Span:
-        """A span started now through the API (for rare events such as an e-stop)."""
-        return self._proxy.start_span(name, attributes=attributes)

@@ -31,7 +31,7 @@ from openral_core import (
     TickResult,
 )
 from openral_hal.protocol import HAL
-from openral_observability import metrics, semconv
+from openral_observability import metrics, semconv, tracer
 from openral_rskill.base import RSkillBase
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.realtime import apply_realtime
@@ -428,7 +428,7 @@ class HardwareRunner(InferenceRunnerBase):
         span = trace.get_current_span()
         span.add_event(semconv.EVENT_ESTOP_REQUESTED, {semconv.ATTR_ESTOP_REASON: str(exc)})
         _log.error("e-stop requested", reason=str(exc))
-        estop_span = self._recorder.start_live_span(semconv.SPAN_HAL_ESTOP, self._hal_attrs)
+        estop_span = tracer().start_span(semconv.SPAN_HAL_ESTOP, attributes=self._hal_attrs)
         try:
             self.hal.estop()
         except Exception as estop_exc:  # still stop the loop even if the HAL cannot confirm
