@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 
 from openral_core import TickResult
@@ -38,3 +41,20 @@ def test_live_status_rates_and_percentiles_come_from_the_recent_ticks() -> None:
     assert status["stale_sensors"] == 1.0
     empty = RunStats().live_status([], elapsed_s=0.0, rate_hz=30.0)
     assert (empty["rate_hz"], empty["tick_ms_p50"], empty["stale_sensors"]) == (0.0, 0.0, 0.0)
+
+
+def test_reading_the_status_of_a_run_imports_nothing() -> None:
+    """An import on a status thread holds the GIL for tens of ms, stalling the tick that wakes meanwhile."""
+    code = (
+        "import sys\n"
+        "from openral_core import TickResult\n"
+        "from openral_runner.stats import RunStats\n"
+        "stats = RunStats()\n"
+        "recent = [TickResult(tick_idx=i, start_ns=i, tick_ms=1.0) for i in range(10)]\n"
+        "before = set(sys.modules)\n"
+        "stats.live_status(recent, elapsed_s=1.0, rate_hz=30.0)\n"
+        "stats.result(runner_name='r', skill_id=None, rate_hz=30.0, n_ticks=10, stop_reason='x', metadata={})\n"
+        "print(sorted(set(sys.modules) - before))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert proc.stdout.strip() == "[]", proc.stdout
