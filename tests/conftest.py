@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 from opentelemetry import metrics, trace
@@ -107,3 +107,120 @@ def telemetry(otel: OTelCapture) -> OTelCapture:
     """The session's in-memory telemetry, with spans cleared and the metric baseline taken."""
     otel.reset()
     return otel
+
+
+class DeployProcess:
+    """``openral deploy`` in a child process of its own process group, as a user's shell or systemd starts it.
+
+    stderr is read on a thread so the test can wait for a line (readiness) instead of sleeping.
+
+    Args:
+        args: Arguments after ``openral``.
+        through_uv: Start it as ``uv run openral ...`` (uv forwards signals to its child), else
+            ``python -m openral_cli ...``.
+    """
+
+    def __init__(self, args: list[str], *, through_uv: bool = False, cwd: str | None = None) -> None:
+        import shutil  # noqa: PLC0415
+        import subprocess  # noqa: PLC0415
+        import sys  # noqa: PLC0415
+        import threading  # noqa: PLC0415
+
+        if through_uv:
+            uv = shutil.which("uv")
+            if uv is None:
+                pytest.skip("uv is not on PATH")
+            command = [uv, "run", "--no-sync", "--quiet", "openral", *args]
+        else:
+            command = [sys.executable, "-m", "openral_cli", *args]
+        self.proc = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+            cwd=cwd,
+        )
+        self.stderr_lines: list[str] = []
+        self._changed = threading.Condition()
+        self._reader = threading.Thread(target=self._read_stderr, daemon=True)
+        self._reader.start()
+
+    def _read_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            with self._changed:
+                self.stderr_lines.append(line)
+                self._changed.notify_all()
+        with self._changed:
+            self._changed.notify_all()
+
+    def wait_for(self, text: str, timeout: float = 60.0) -> str:
+        """Block until a stderr line contains ``text``; fail if the process exits first or time runs out."""
+        import time  # noqa: PLC0415
+
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while True:
+                for line in self.stderr_lines:
+                    if text in line:
+                        return line
+                if self.proc.poll() is not None and not self._reader.is_alive():
+                    pytest.fail(f"deploy exited ({self.proc.returncode}) before printing {text!r}:\n{self.stderr}")
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    pytest.fail(f"deploy did not print {text!r} within {timeout} s:\n{self.stderr}")
+                self._changed.wait(min(remaining, 0.2))
+
+    def signal_group(self, signum: int) -> None:
+        """Send ``signum`` to the whole process group (uv and its child), as a terminal or systemd does."""
+        import os  # noqa: PLC0415
+
+        os.killpg(self.proc.pid, signum)
+
+    def finish(self, timeout: float = 60.0) -> tuple[int, str]:
+        """Wait for exit; returns the exit code and stdout."""
+        assert self.proc.stdout is not None
+        stdout = self.proc.stdout.read()
+        self.proc.wait(timeout)
+        self.close()
+        return self.proc.returncode, stdout
+
+    def close(self) -> None:
+        """Close the pipes once the process has exited."""
+        self._reader.join(5)
+        for stream in (self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                stream.close()
+
+    @property
+    def stderr(self) -> str:
+        return "".join(self.stderr_lines)
+
+    def kill(self) -> None:
+        import contextlib  # noqa: PLC0415
+        import os  # noqa: PLC0415
+        import signal  # noqa: PLC0415
+
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait(10)
+        self.close()
+
+
+@pytest.fixture
+def deploy_process() -> Iterator[Callable[..., DeployProcess]]:
+    """Start ``openral deploy`` processes (see :class:`DeployProcess`); any still running are killed afterwards."""
+    started: list[DeployProcess] = []
+
+    def start(args: list[str], **kwargs: object) -> DeployProcess:
+        process = DeployProcess(args, **kwargs)  # type: ignore[arg-type]
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        if process.proc.poll() is None:
+            process.kill()
+        else:
+            process.close()

@@ -20,17 +20,31 @@ EXIT_SIGTERM = 143
 
 @contextmanager
 def exit_codes(debug: bool, echo: Callable[[str], None] | None = None) -> Iterator[None]:
-    """Turn ``ROSError`` into a one-line message and an exit code; tracebacks only with ``debug``."""
+    """Turn errors into one line on stderr and an exit code; tracebacks only with ``debug``.
+
+    ``ROSConfigError`` exits 2, any other ``ROSError`` 1. Anything else is a defect in openral or
+    a plugin: it is reported on one line too (exit 1), with the traceback under ``--debug``.
+    """
     say = echo or (lambda text: click.echo(text, err=True))
     try:
         yield
     except ROSConfigError as exc:
         if debug:
             traceback.print_exc(file=sys.stderr)
-        say(f"error: {exc}")
+        say(f"error: {one_line(str(exc))}")
         raise SystemExit(EXIT_CONFIG) from None
     except ROSError as exc:
         if debug:
             traceback.print_exc(file=sys.stderr)
-        say(f"error: {type(exc).__name__}: {exc}")
+        say(f"error: {type(exc).__name__}: {one_line(str(exc))}")
         raise SystemExit(EXIT_RUNTIME) from None
+    except Exception as exc:
+        if debug:
+            traceback.print_exc(file=sys.stderr)
+        say(f"error: unexpected {type(exc).__name__}: {one_line(str(exc))} (run with --debug for the traceback)")
+        raise SystemExit(EXIT_RUNTIME) from None
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line: line breaks and other control characters are written as escapes."""
+    return "".join(ch if ch.isprintable() or ch == " " else ascii(ch)[1:-1] for ch in text)

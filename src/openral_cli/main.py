@@ -4,33 +4,46 @@ from __future__ import annotations
 
 import importlib
 import logging
-import signal
+import math
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
-from types import FrameType
 
 import click
 import structlog
 
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, EXIT_RUNTIME, EXIT_SIGINT, EXIT_SIGTERM, exit_codes
 from openral_cli.report import format_run_result
+from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
-from openral_core import RobotEnvironment, ROSConfigError, ROSDeadlineMissed, RunResult
+from openral_core import RobotEnvironment, ROSConfigError, ROSDeadlineMissed, ROSStopRequested, RunResult
 from openral_core.schema import robot_environment_schema_json
 from openral_hal.manifests import load_robot_manifest
 from openral_observability import semconv, tracer
 from openral_observability.logs import OTelLogBridge, add_trace_ids
 from openral_observability.propagation import context_from_env
 from openral_observability.setup import PROTOCOLS, setup
-from openral_runner.base import InferenceRunnerBase
 from openral_runner.factory import build_runner
 
 FOXGLOVE_DEFAULT_PORT = 8765
 """Foxglove's conventional WebSocket port."""
 
-_STOP_EXIT_CODES = {"signal:SIGINT": EXIT_SIGINT, "signal:SIGTERM": EXIT_SIGTERM, "faults": EXIT_RUNTIME}
+_STOP_EXIT_CODES = {"signal:SIGINT": EXIT_SIGINT, "signal:SIGTERM": EXIT_SIGTERM}
+_log = structlog.get_logger("openral")
+
+
+class Seconds(click.ParamType):  # type: ignore[type-arg]
+    """A positive, finite number of seconds (``nan`` and ``inf`` are refused)."""
+
+    name = "seconds"
+
+    def convert(self, value: object, param: click.Parameter | None, ctx: click.Context | None) -> float:
+        try:
+            seconds = float(value)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number of seconds", param, ctx)
+        if not (math.isfinite(seconds) and seconds > 0):
+            self.fail(f"{value!r} must be a positive, finite number of seconds", param, ctx)
+        return seconds
 
 
 class _Stderr:
@@ -81,7 +94,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     help="Deployment file (RobotEnvironment YAML).",
 )
 @click.option("--max-ticks", type=click.IntRange(min=0), default=None, help="Stop after this many ticks.")
-@click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None, help="Stop after S seconds.")
+@click.option("--duration", type=Seconds(), default=None, help="Stop after S seconds (a positive, finite number).")
 @click.option("--json", "as_json", is_flag=True, help="Print the RunResult as JSON on stdout, nothing else.")
 @click.option(
     "--otlp-endpoint",
@@ -138,9 +151,13 @@ def deploy(
     Every tick is traced under one cli.command span, which continues the trace named by a
     TRACEPARENT environment variable when there is one. Telemetry is exported only when an
     endpoint is given (flag or OTEL_* variables) and is flushed on every exit.
+
+    SIGINT and SIGTERM, however many and whenever they arrive, lead to one orderly stop: the
+    tick finishes, the robot holds, everything closes (start-up included), telemetry is flushed
+    and the RunResult printed (exit 130 / 143). Two more within a second force torque off and exit.
     """
     debug = bool(ctx.obj["debug"])
-    with exit_codes(debug):
+    with StopSignals() as signals, exit_codes(debug):
         telemetry = setup(endpoint=otlp_endpoint, protocol=otlp_protocol, sample_ratio=trace_sample_ratio)
         try:
             with tracer().start_as_current_span(
@@ -149,25 +166,39 @@ def deploy(
                 attributes={semconv.ATTR_CLI_COMMAND: "deploy", semconv.ATTR_CLI_CONFIG: str(config_path)},
             ) as span:
                 env = RobotEnvironment.from_yaml(config_path)
-                result = _deploy(
-                    env,
-                    config_path.parent,
-                    max_ticks,
-                    duration,
-                    quiet=as_json,
-                    foxglove_port=foxglove_port,
-                    mcap_path=mcap_path,
-                )
+                try:
+                    result = _deploy(
+                        env,
+                        config_path.parent,
+                        max_ticks,
+                        duration,
+                        signals=signals,
+                        quiet=as_json,
+                        foxglove_port=foxglove_port,
+                        mcap_path=mcap_path,
+                    )
+                except ROSDeadlineMissed as exc:
+                    if exc.run_result is not None:
+                        _print_result(exc.run_result, as_json=as_json, err=not as_json)
+                    raise
                 span.set_attributes(
                     {semconv.ATTR_RUN_STOP_REASON: result.stop_reason, semconv.ATTR_RUN_TICKS: result.n_ticks}
                 )
-            click.echo(result.model_dump_json(indent=2) if as_json else format_run_result(result))
-            code = _STOP_EXIT_CODES.get(result.stop_reason, EXIT_OK)
-            if result.stop_reason == "estop":
-                code = EXIT_RUNTIME
+            _print_result(result, as_json=as_json)
+            code = _exit_code(result.stop_reason)
         finally:
             telemetry.shutdown()
     raise SystemExit(code)
+
+
+def _print_result(result: RunResult, *, as_json: bool, err: bool = False) -> None:
+    click.echo(result.model_dump_json(indent=2) if as_json else format_run_result(result), err=err)
+
+
+def _exit_code(stop_reason: str) -> int:
+    if stop_reason in ("faults", "estop"):
+        return EXIT_RUNTIME
+    return _STOP_EXIT_CODES.get(stop_reason, EXIT_OK)
 
 
 def _deploy(
@@ -176,54 +207,49 @@ def _deploy(
     max_ticks: int | None,
     duration: float | None,
     *,
+    signals: StopSignals,
     quiet: bool,
     foxglove_port: int | None = None,
     mcap_path: Path | None = None,
 ) -> RunResult:
+    """Build, start, run and close one deployment; a stop signal at any point unwinds what was started."""
     runner, skill = build_runner(env, base_dir=base_dir)
+    signals.on_stop(runner.request_stop)
+    # The escape: the robot's torque off even if the main thread is stuck (bounded by StopSignals).
+    signals.on_force(runner.hal.disconnect)
     sink = None
-    if foxglove_port is not None or mcap_path is not None:
-        # Loaded only when asked for: the bridge imports foxglove-sdk (the 'foxglove' extra).
-        bridge = importlib.import_module("openral_runner.bridges.foxglove")
-        sink = bridge.FoxgloveSink(port=foxglove_port, mcap_path=mcap_path, image_hz=env.thumbnail_hz or 10.0)
-        runner.observers.append(sink)  # closed by runner.deactivate(), also when activate() rolls back
-        if sink.port is not None and not quiet:
-            click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
-    skill.configure()
     try:
+        signals.check()
+        if foxglove_port is not None or mcap_path is not None:
+            # Loaded only when asked for: the bridge imports foxglove-sdk (the 'foxglove' extra).
+            bridge = importlib.import_module("openral_runner.bridges.foxglove")
+            sink = bridge.FoxgloveSink(port=foxglove_port, mcap_path=mcap_path, image_hz=env.thumbnail_hz or 10.0)
+            runner.observers.append(sink)  # closed by runner.deactivate(), also when activate() rolls back
+            if sink.port is not None and not quiet:
+                click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
+        skill.configure()
+        signals.check()
         skill.activate()
-        runner.activate()
+        runner.activate()  # checks for a stop between its own steps and rolls back
         try:
-            with _stop_on_signals(runner), LiveStatus(runner, sys.stderr, title=env.name):
-                try:
-                    return runner.run(max_ticks, duration_s=duration)
-                except ROSDeadlineMissed as exc:
-                    if exc.run_result is not None and not quiet:
-                        click.echo(format_run_result(exc.run_result), err=True)
-                    raise
+            _log.info("running", deployment=env.name, rate_hz=env.rate_hz, skill=env.vla.id, robot=env.hal.robot_id)
+            with LiveStatus(runner, sys.stderr, title=env.name):
+                return runner.run(max_ticks, duration_s=duration)
         finally:
             runner.deactivate()
+    except ROSStopRequested as exc:
+        _log.info("stopped before the first tick; everything started was closed", reason=exc.reason)
+        return RunResult(
+            runner_name=runner.runner_name,
+            skill_id=runner.skill_id,
+            rate_hz=runner.rate_hz,
+            n_ticks=0,
+            stop_reason=exc.reason,
+        )
     finally:
         skill.shutdown()
         if sink is not None:
             sink.close()  # idempotent; here for runs that never reached activate()
-
-
-@contextmanager
-def _stop_on_signals(runner: InferenceRunnerBase) -> Iterator[None]:
-    """SIGINT/SIGTERM finish the current tick and end the run; a second SIGINT aborts at once."""
-
-    def handler(signum: int, _frame: FrameType | None) -> None:
-        name = signal.Signals(signum).name
-        runner.request_stop(f"signal:{name}")
-        signal.signal(signum, signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL)
-
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
 
 
 @cli.command()

@@ -31,7 +31,7 @@ from openral_core.errors import (
     ROSSyncError,
 )
 from openral_core.frames import FrameEncoding, SensorFrame
-from openral_core.results import RunResult, TickResult
+from openral_core.results import RunResult, TickResult, WithheldReason
 from openral_core.robot import JointKind, JointSpec, ModelRef, RobotManifest
 from openral_core.skills import RSkillInfo, RSkillState
 from openral_core.world import ComponentDiagnostics, JointState, Pose6D, WorldState
@@ -79,5 +79,6 @@ __all__ = [
     "TaskSpec",
     "TickResult",
     "VLASpec",
+    "WithheldReason",
     "WorldState",
 ]

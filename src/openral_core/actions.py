@@ -56,6 +56,37 @@ class Action(BaseModel):
         return self.targets[0]
 
 
+def action_problem(output: object) -> str | None:
+    """Why ``output`` (what a skill's ``step`` returned) is not an action the runner can check and send.
+
+    ``None`` when it is one. Cheap enough for every tick: type checks only, no validation pass.
+    Catches what pydantic would have refused had the action not been built with
+    ``model_construct`` or mutated afterwards: a non-``Action``, ``None``, numpy rows, ``None`` or
+    text values, empty or ragged targets. Non-finite numbers are left to the safety client.
+    """
+    if not isinstance(output, Action):
+        return f"step returned {type(output).__name__}, not an Action"
+    names = output.joint_names
+    targets = output.targets
+    if type(names) is not list or not names or not all(type(name) is str for name in names):
+        return "joint_names must be a non-empty list of joint names"
+    if type(targets) is not list or not targets:
+        return "targets must hold at least one row"
+    n = len(names)
+    for k, row in enumerate(targets):
+        if type(row) is not list:
+            return f"targets[{k}] is {type(row).__name__}, not a list of numbers"
+        if len(row) != n:
+            return f"targets[{k}] has {len(row)} values for {n} joint names"
+        for value in row:
+            kind = type(value)
+            if kind is not float and kind is not int:
+                return f"targets[{k}] holds {kind.__name__} {value!r:.40}, not a number"
+    if not isinstance(output.control_mode, ControlMode):
+        return f"control_mode {output.control_mode!r:.40} is not a control mode"
+    return None
+
+
 class SafetyMode(StrEnum):
     """What the safety client does with an action outside the envelope."""
 

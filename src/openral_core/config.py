@@ -3,36 +3,34 @@
 from __future__ import annotations
 
 import difflib
+import json
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
 from pydantic import BaseModel, ValidationError
 
+from openral_core.config_files import is_plain, load_config_file
 from openral_core.errors import ROSConfigError
 
 ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
-def load_model_yaml(model: type[ModelT], path: Path) -> ModelT:
-    """Read ``path`` as YAML and validate it as ``model``.
+def load_model_yaml(model: type[ModelT], path: Path, *, field: str | None = None) -> ModelT:
+    """Read ``path`` (YAML, or JSON for ``.json``) and validate it as ``model``.
+
+    Args:
+        field: The option or field that named the file (``--config``, ``vla.manifest``); file-level
+            errors name it, and field errors inside the file say which file they are in.
 
     Raises:
-        ROSConfigError: Missing file, invalid YAML, or a field error (named, with a fix).
+        ROSConfigError: Unreadable or hostile file, invalid YAML, or a field error (named, with a fix).
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise ROSConfigError(f"file not found: {path}", hint="check the path") from exc
-    except OSError as exc:
-        raise ROSConfigError(f"cannot read {path}: {exc.strerror}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ROSConfigError(f"{path} is not valid YAML: {exc}") from exc
+    data = load_config_file(path, field=field)
     if not isinstance(data, dict):
-        raise ROSConfigError(f"{path} must hold a mapping at the top level, not {type(data).__name__}")
-    return validate_model(model, data, source=str(path))
+        kind = "nothing" if data is None else type(data).__name__
+        raise ROSConfigError(f"{path} must hold a mapping at the top level, not {kind}", field=field)
+    source = f"{field}: {path}" if field else str(path)
+    return validate_model(model, data, source=source)
 
 
 def validate_model(
@@ -40,11 +38,17 @@ def validate_model(
 ) -> ModelT:
     """Validate ``data`` as ``model``, raising ``ROSConfigError`` that names the first bad field.
 
+    Plain data (what a configuration file holds) is validated strictly, as JSON: a boolean is not
+    a number and text is not a number (``rate_hz: true`` or ``rate_hz: "30"`` is an error, not 1 Hz
+    or a silent conversion). Python objects from code are validated in pydantic's usual lax mode.
+
     Args:
         source: Where the data came from (a file, a plugin), appended to the message.
         field_prefix: Dotted path of ``data`` in the deployment (``hal.params``), prepended to field names.
     """
     try:
+        if is_plain(data):
+            return model.model_validate_json(json.dumps(data), strict=True)
         return model.model_validate(data)
     except ValidationError as exc:
         raise config_error_from_validation(exc, model, source=source, field_prefix=field_prefix) from exc
@@ -90,9 +94,29 @@ def _describe(error: Any, model: type[BaseModel]) -> tuple[str, str | None]:
     if kind == "missing":
         return "is required but missing", "add it to the file"
     message = str(error["msg"])
+    if kind in _TYPE_ERRORS:
+        message = f"{message}, got {_describe_input(error.get('input'))}"
     if message.startswith("Value error, "):
         message = message[len("Value error, ") :]
     return message, None
+
+
+_TYPE_ERRORS = frozenset({"float_type", "int_type", "bool_type", "string_type", "list_type", "dict_type", "tuple_type"})
+
+
+def _describe_input(value: Any) -> str:
+    if isinstance(value, bool):
+        return f"a boolean ({str(value).lower()}): booleans are not numbers"
+    if isinstance(value, str):
+        shown = value if len(value) <= 40 else value[:37] + "..."
+        return f"text {shown!r}"
+    if value is None:
+        return "null"
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    return f"{type(value).__name__} {value!r}"[:60]
 
 
 def _allowed_keys(model: type[BaseModel], loc: tuple[int | str, ...]) -> list[str]:

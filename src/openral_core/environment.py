@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, Self
+from typing import Annotated, Any, Self
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -13,6 +13,15 @@ from openral_core.config import load_model_yaml
 from openral_core.frames import FrameEncoding
 
 _ID_PATTERN = r"^[A-Za-z][A-Za-z0-9_\-]*$"
+
+MAX_CAMERA_FPS = 1000.0
+"""Highest frame or publish rate a sensor may be configured for."""
+
+MAX_IMAGE_SIDE = 16384
+"""Largest image width or height accepted (16K)."""
+
+CPU_SETSIZE = 1024
+"""CPU ids the kernel's affinity mask can name (glibc's ``CPU_SETSIZE``)."""
 
 
 class SensorReaderBackend(StrEnum):
@@ -80,14 +89,14 @@ class SensorReaderConfig(_Block):
     backend: SensorReaderBackend = SensorReaderBackend.OPENCV_THREAD
     required: bool = True
     max_age_ms: float = Field(default=100.0, gt=0)
-    fps: float = Field(default=30.0, gt=0)
-    width: int | None = Field(default=None, ge=1)
-    height: int | None = Field(default=None, ge=1)
+    fps: float = Field(default=30.0, gt=0, le=MAX_CAMERA_FPS)
+    width: int | None = Field(default=None, ge=1, le=MAX_IMAGE_SIDE)
+    height: int | None = Field(default=None, ge=1, le=MAX_IMAGE_SIDE)
     encoding: FrameEncoding = FrameEncoding.BGR8
     backend_params: dict[str, Any] = Field(default_factory=dict)
     publish_to_ros: bool = False
     publish_topic: str | None = None
-    publish_rate_hz: float | None = Field(default=None, gt=0)
+    publish_rate_hz: float | None = Field(default=None, gt=0, le=MAX_CAMERA_FPS)
 
     @model_validator(mode="after")
     def _ros_tee(self) -> Self:
@@ -189,7 +198,7 @@ class RealtimeConfig(_Block):
     """
 
     sched_fifo_priority: int | None = Field(default=None, ge=1, le=99)
-    cpu_affinity: list[int] | None = None
+    cpu_affinity: list[Annotated[int, Field(ge=0, lt=CPU_SETSIZE)]] | None = Field(default=None, min_length=1)
     switch_interval_s: float | None = Field(default=None, gt=0, le=0.1)
     lock_memory: bool = False
     garbage_collection: GarbageCollection = GarbageCollection.BETWEEN_TICKS
@@ -217,7 +226,7 @@ class RobotEnvironment(_Block):
     rate_hz: float = Field(default=30.0, gt=0, le=10_000)
     deadline_overrun_policy: DeadlineOverrunPolicy = DeadlineOverrunPolicy.WARN
     latency_budget_ms: float | None = Field(default=None, gt=0)
-    thumbnail_hz: float = Field(default=0.0, ge=0)
+    thumbnail_hz: float = Field(default=0.0, ge=0, le=MAX_CAMERA_FPS)
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
     realtime: RealtimeConfig = Field(default_factory=RealtimeConfig)
     faults: FaultPolicy = Field(default_factory=FaultPolicy)

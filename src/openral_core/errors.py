@@ -163,7 +163,19 @@ class ROSDeadlineMissed(ROSRuntimeError):
 
 
 class ROSStopRequested(ROSError):
-    """A cooperative stop (signal or caller) ended the run before its tick limit."""
+    """A cooperative stop (signal, caller, or a skill that finished its task) ended the run early.
+
+    Args:
+        message: What asked for the stop.
+        reason: The stop reason reported in the ``RunResult`` (``signal:SIGTERM``, ...).
+    """
+
+    def __init__(self, message: str = "stop requested", *, reason: str = "stop_requested") -> None:
+        self.reason = reason
+        super().__init__(message)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_rebuild, (type(self), (str(self),), {"reason": self.reason}))
 
 
 def _rebuild(cls: type[ROSError], args: tuple[Any, ...], kwargs: dict[str, Any]) -> ROSError:

@@ -2,9 +2,42 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
+
+
+class WithheldReason(StrEnum):
+    """Why a tick's action did not reach ``HAL.send_action``.
+
+    The fault reasons (:attr:`is_fault`) count towards ``faults.max_consecutive_failures``.
+    """
+
+    DEADLINE = "deadline"
+    SAFETY = "safety"
+    STALE_SENSOR = "stale_sensor"
+    READ_STATE = "read_state"
+    SKILL_ERROR = "skill_error"
+    INVALID_ACTION = "invalid_action"
+    HAL_ERROR = "hal_error"
+    ESTOP = "estop"
+
+    @property
+    def is_fault(self) -> bool:
+        """Whether this reason is a failed tick (a component failed, not a policy decision)."""
+        return self in _FAULTS
+
+
+_FAULTS = frozenset(
+    {
+        WithheldReason.STALE_SENSOR,
+        WithheldReason.READ_STATE,
+        WithheldReason.SKILL_ERROR,
+        WithheldReason.INVALID_ACTION,
+        WithheldReason.HAL_ERROR,
+    }
+)
 
 
 class TickResult(BaseModel):
@@ -18,8 +51,7 @@ class TickResult(BaseModel):
         start_ns: Tick start on the runner clock, in nanoseconds.
         lateness_ms: How far past the tick's deadline the action was ready (0 if on time).
         action_applied: The action reached ``HAL.send_action``.
-        withheld_reason: Why it did not (``deadline``, ``safety``, ``stale_sensor``, ``skill_error``,
-            ``read_state``, ``estop``), ``None`` when applied.
+        withheld_reason: Why it did not (see :class:`WithheldReason`), ``None`` when applied.
         requested_action / sent_action: Row 0 before and after the safety client, when they differ
             the safety client clamped.
     """
@@ -35,7 +67,7 @@ class TickResult(BaseModel):
     safety_ms: float = 0.0
     hal_ms: float = 0.0
     action_applied: bool = False
-    withheld_reason: str | None = None
+    withheld_reason: WithheldReason | None = None
     safety_violations: list[str] = Field(default_factory=list)
     stale_sensors: list[str] = Field(default_factory=list)
     deadline_missed: bool = False

@@ -11,9 +11,8 @@ import functools
 from importlib.resources import files
 from importlib.resources.abc import Traversable
 
-import yaml
-
 from openral_core.config import validate_model
+from openral_core.config_files import parse_config_text
 from openral_core.errors import ROSConfigError
 from openral_core.robot import RobotManifest
 
@@ -62,10 +61,7 @@ def load_robot_manifest(robot_id: str) -> RobotManifest:
 def _load(robot_id: str) -> RobotManifest:
     resource = _robots_dir().joinpath(robot_id, MANIFEST_FILE)
     source = f"openral_hal/robots/{robot_id}/{MANIFEST_FILE}"
-    try:
-        data = yaml.safe_load(resource.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ROSConfigError(f"{source} is not valid YAML: {exc}") from exc
+    data = parse_config_text(resource.read_text(encoding="utf-8"), source=source)
     manifest = validate_model(RobotManifest, data, source=source)
     if manifest.robot_id != robot_id:
         raise ROSConfigError(

@@ -13,14 +13,17 @@ parent as usual; both processes carry the same resource.
 Protocol on the child's stdin: a 4-byte little-endian length, then a pickled message:
 ``("data", spans, samples)`` or ``("flush",)``; the child answers a flush with one byte on
 stdout once its exporters have flushed. End of input means shut down: the child flushes and
-exits. It ignores SIGINT and SIGTERM, so a Ctrl-C or a service stop delivered to the whole
-process group still lets the parent's shutdown drain it. It runs at a lower priority (nice
-+10) than the runner: on a machine short of cores, the tick thread gets the CPU first.
+exits, within ``flush_timeout_s`` whatever the collector does. It ignores SIGINT and SIGTERM, so
+a Ctrl-C or a service stop delivered to the whole process group still lets the parent's shutdown
+drain it, and it never outlives the parent: the kernel kills it when the parent dies (Linux's
+parent-death signal), even by SIGKILL. It runs at a lower priority (nice +10) than the runner: on
+a machine short of cores, the tick thread gets the CPU first.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import json
 import os
 import pickle
@@ -65,11 +68,15 @@ class ExportProcess:
         fallback: Where records go when the child is gone: this process's own exporters.
     """
 
-    def __init__(self, config: TelemetryConfig, fallback: TelemetrySink | None = None) -> None:
+    def __init__(
+        self, config: TelemetryConfig, fallback: TelemetrySink | None = None, *, flush_timeout_s: float = 5.0
+    ) -> None:
         self._fallback = fallback
         settings = json.dumps(asdict(config))
+        # The parent-death signal fires when the creating *thread* exits: create this on a thread
+        # that lives as long as the runner (the CLI creates it on the main thread).
         self._process = subprocess.Popen(
-            [sys.executable, "-m", __name__, settings],
+            [sys.executable, "-m", __name__, settings, str(os.getpid()), repr(flush_timeout_s)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=os.environ.copy(),
@@ -182,8 +189,12 @@ def _read_exact(stream: IO[bytes], n: int) -> bytes | None:
     return data if data is not None and len(data) == n else None
 
 
-def serve(stdin: IO[bytes], stdout: IO[bytes], settings: str) -> int:
-    """The child's loop: install the exporters, export what arrives, flush and exit at end of input."""
+def serve(stdin: IO[bytes], stdout: IO[bytes], settings: str, flush_timeout_s: float = 5.0) -> int:
+    """The child's loop: install the exporters, export what arrives, flush and exit at end of input.
+
+    The final flush is bounded by ``flush_timeout_s``: with the collector unreachable, what is
+    still buffered is dropped rather than retried for tens of seconds.
+    """
     config = TelemetryConfig(**json.loads(settings))
     config = replace(config, endpoints={k: v for k, v in config.endpoints.items() if k != "logs"})
     providers = install(config)
@@ -201,23 +212,43 @@ def serve(stdin: IO[bytes], stdout: IO[bytes], settings: str) -> int:
                 provider.force_flush()
             stdout.write(_FLUSHED)
             stdout.flush()
-    for provider in providers:
-        provider.force_flush()
-        provider.shutdown()
-    return 0
+
+    def flush_and_stop() -> None:
+        for provider in providers:
+            provider.force_flush(int(flush_timeout_s * 1e3))
+            provider.shutdown()
+
+    final = threading.Thread(target=flush_and_stop, name="openral-export-shutdown", daemon=True)
+    final.start()
+    final.join(flush_timeout_s)
+    return 0 if not final.is_alive() else 1
 
 
 NICENESS: Final = 10
 """How much lower than its parent the export process runs: where cores are short, the tick wins."""
 
 
+_PR_SET_PDEATHSIG: Final = 1
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Ask the kernel to SIGKILL this process when its parent dies; exit now if it already has."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent_pid:  # the parent died before the request took effect
+        os._exit(0)
+
+
 def main() -> int:
-    """Entry point of the child process."""
+    """Entry point of the child process: ``settings parent_pid flush_timeout_s``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    die_with_parent(int(sys.argv[2]))
     os.nice(NICENESS)
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(file=sys.stderr))
-    return serve(sys.stdin.buffer, sys.stdout.buffer, sys.argv[1])
+    code = serve(sys.stdin.buffer, sys.stdout.buffer, sys.argv[1], float(sys.argv[3]))
+    os._exit(code)  # exporter threads still retrying must not hold the exit
 
 
 if __name__ == "__main__":

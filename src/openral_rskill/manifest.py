@@ -76,7 +76,9 @@ class RSkillManifest(BaseModel):
     _source: str | None = PrivateAttr(default=None)
 
     @classmethod
-    def from_yaml(cls, path: str | Path, *, accept_licenses: Collection[str] | None = None) -> Self:
+    def from_yaml(
+        cls, path: str | Path, *, accept_licenses: Collection[str] | None = None, field: str | None = "vla.manifest"
+    ) -> Self:
         """Load and validate ``path``, then check its licence (see :meth:`check_license`).
 
         Raises:
@@ -84,7 +86,7 @@ class RSkillManifest(BaseModel):
             ROSLicenseError: The licence is not accepted.
         """
         path = Path(path)
-        manifest = load_model_yaml(cls, path)
+        manifest = load_model_yaml(cls, path, field=field)
         manifest._source = str(path)
         manifest.check_license(accept_licenses)
         return manifest

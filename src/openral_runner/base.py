@@ -31,8 +31,10 @@ from openral_core import (
     ROSConfigError,
     ROSDeadlineMissed,
     ROSRuntimeError,
+    ROSStopRequested,
     RunResult,
     TickResult,
+    WithheldReason,
     WorldState,
 )
 from openral_observability import metrics, semconv, trace_id_hex, traceparent
@@ -46,7 +48,7 @@ from openral_runner.tick_span import tick_span_attributes
 
 _log = structlog.get_logger(__name__)
 
-FAULT_REASONS: Final = frozenset({"stale_sensor", "read_state", "skill_error", "hal_error"})
+FAULT_REASONS: Final = frozenset(reason for reason in WithheldReason if reason.is_fault)
 """Withheld reasons that count towards ``max_consecutive_failures``."""
 
 _RECENT_TICKS: Final = 4096
@@ -136,13 +138,13 @@ class InferenceRunnerBase(ABC):
         (SDK ones: deferred to the worker; the API's no-op ones: recorded directly, for nothing).
         """
         self._tick_idx = 0
-        self._stop_reason = None
         self._recorder.activate()
         self._active = True
 
     def deactivate(self) -> None:
-        """Stop ticking and flush the telemetry worker. Idempotent."""
+        """Stop ticking and flush the telemetry worker; a pending stop request is cleared. Idempotent."""
         self._active = False
+        self._stop_reason = None
         self._recorder.deactivate()
 
     def flush_telemetry(self, timeout_s: float = 10.0) -> bool:
@@ -159,9 +161,28 @@ class InferenceRunnerBase(ABC):
         return self._recorder.worker.dropped
 
     def request_stop(self, reason: str = "stop_requested") -> None:
-        """Ask ``run()`` to finish the current tick and return. Safe from signal handlers and threads."""
+        """Ask ``run()`` to finish the current tick and return. Safe from signal handlers and threads.
+
+        A request made before ``run()`` (during ``activate()``, say) is kept: start-up rolls back
+        and ``run()`` returns at once. ``deactivate()`` clears it.
+        """
         if self._stop_reason is None:
             self._stop_reason = reason
+
+    @property
+    def stop_requested(self) -> str | None:
+        """The pending stop reason, ``None`` when nobody asked the runner to stop."""
+        return self._stop_reason
+
+    def _check_stop(self) -> None:
+        """Raise if a stop was requested: called between start-up steps so they roll back.
+
+        Raises:
+            ROSStopRequested: Carrying the stop reason.
+        """
+        reason = self._stop_reason
+        if reason is not None:
+            raise ROSStopRequested(f"{self.runner_name}: stop requested during start-up ({reason})", reason=reason)
 
     @abstractmethod
     def _tick_impl(self, tick_idx: int) -> TickResult:
@@ -305,7 +326,7 @@ class InferenceRunnerBase(ABC):
             metrics.add(
                 semconv.METRIC_ACTIONS_WITHHELD, 1, {**self._metric_attrs, semconv.ATTR_WITHHELD_REASON: reason}
             )
-            if reason == "deadline":
+            if reason is WithheldReason.DEADLINE:
                 self._stats.dropped += 1
             if reason in FAULT_REASONS:
                 self._stats.failed += 1

@@ -13,6 +13,7 @@ from typing import Any
 import structlog
 
 from openral_core import RobotEnvironment, RobotManifest, ROSConfigError
+from openral_core.config_files import resolve_user_path
 from openral_core.plugins import (
     HALS_GROUP,
     SAFETY_CLIENTS_GROUP,
@@ -74,9 +75,7 @@ def build_runner(
     robot = load_robot_manifest(env.hal.robot_id)
     skill_params = dict(env.vla.params)
     if env.vla.manifest is not None:
-        manifest_path = Path(env.vla.manifest)
-        if not manifest_path.is_absolute() and base_dir is not None:
-            manifest_path = base_dir / manifest_path
+        manifest_path = resolve_user_path(env.vla.manifest, base_dir, field="vla.manifest")
         rskill = RSkillManifest.from_yaml(manifest_path, accept_licenses=env.vla.accept_licenses)
         rskill.check_compatible(robot.robot_id)
         if rskill.skill != env.vla.id:

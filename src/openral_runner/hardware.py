@@ -29,7 +29,9 @@ from openral_core import (
     SensorFrame,
     SyncConfig,
     TickResult,
+    WithheldReason,
 )
+from openral_core.actions import action_problem
 from openral_hal.protocol import HAL
 from openral_observability import metrics, semconv, tracer
 from openral_rskill.base import RSkillBase
@@ -114,18 +116,25 @@ class HardwareRunner(InferenceRunnerBase):
     def activate(self) -> None:
         """Connect the HAL, then open every reader; on any failure close what was opened.
 
+        A stop requested while starting (a signal, another thread) is honoured between steps:
+        whatever was opened is closed again, the HAL disconnected included.
+
         Raises:
+            ROSStopRequested: A stop was requested during start-up; everything was rolled back.
             ROSError: Whatever the failing component raised, after rollback.
         """
         if self._opened is not None:
             super().activate()
             return
         with ExitStack() as stack:
+            self._check_stop()
             self.hal.connect()
             stack.callback(self._safe_close, "hal", self.hal.disconnect)
             for reader in self.sensor_readers:
+                self._check_stop()
                 reader.open()
                 stack.callback(self._safe_close, f"sensor {reader.sensor_id}", reader.close)
+            self._check_stop()
             if self.thumbnails is not None:
                 self.thumbnails.start()
                 stack.callback(self._safe_close, "thumbnails", self.thumbnails.stop)
@@ -221,7 +230,7 @@ class HardwareRunner(InferenceRunnerBase):
         now = self._clock.now
         telemetry = self._telemetry
         start_span = telemetry.start_span
-        withheld: str | None = None
+        withheld: WithheldReason | None = None
         stale: list[str] = []
         violations: list[str] = []
 
@@ -233,7 +242,7 @@ class HardwareRunner(InferenceRunnerBase):
         if self._synced_readers and not self._read_synced_set():
             stale.extend(r.sensor_id for r in self._synced_readers)
             if self._sync_required:
-                withheld = "stale_sensor"
+                withheld = WithheldReason.STALE_SENSOR
         t_read = now()
         span = start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
         try:
@@ -242,7 +251,7 @@ class HardwareRunner(InferenceRunnerBase):
             if self._safety_observe is not None:
                 self._safety_observe(state)
         except ROSError as exc:
-            withheld = "read_state"
+            withheld = WithheldReason.READ_STATE
             _record_error(span, exc)
             _log.warning("read_state failed", error=str(exc), tick=tick_idx)
         finally:
@@ -255,7 +264,7 @@ class HardwareRunner(InferenceRunnerBase):
         # A required sensor counts as stale if its reader said so this tick, even when the world
         # state still holds an older frame within its age limit.
         if withheld is None and (world.stale_required or any(s in self._required_ids for s in stale)):
-            withheld = "stale_sensor"
+            withheld = WithheldReason.STALE_SENSOR
 
         t2 = now()
         action: Action | None = None
@@ -263,11 +272,17 @@ class HardwareRunner(InferenceRunnerBase):
             span = start_span(semconv.SPAN_SKILL_INFERENCE)
             token = context.attach(trace.set_span_in_context(span))
             try:
-                action = self.skill.step(world)
+                output = self.skill.step(world)
+                problem = action_problem(output)
+                if problem is None:
+                    action = output
+                else:
+                    withheld = WithheldReason.INVALID_ACTION
+                    self._on_invalid_action(span, problem, tick_idx)
             except ROSEStopRequested as exc:
                 withheld = self._estop(exc)
             except Exception as exc:  # the skill is third-party code: any failure withholds
-                withheld = "skill_error"
+                withheld = WithheldReason.SKILL_ERROR
                 _record_error(span, exc)
                 _log.warning("skill step failed", error=str(exc), tick=tick_idx)
             finally:
@@ -291,7 +306,7 @@ class HardwareRunner(InferenceRunnerBase):
                         }
                     )
             except ROSSafetyViolation as exc:
-                withheld = "safety"
+                withheld = WithheldReason.SAFETY
                 violations.append(exc.check_name)
                 if span.is_recording():
                     span.set_attribute(semconv.ATTR_SAFETY_REQUESTED, action.first)
@@ -313,16 +328,16 @@ class HardwareRunner(InferenceRunnerBase):
                     if self._safety_commit is not None:
                         self._safety_commit(to_send)
                 except ROSError as exc:
-                    withheld = "hal_error"
+                    withheld = WithheldReason.HAL_ERROR
                     _record_error(span, exc)
                     _log.warning("send_action failed", error=str(exc), tick=tick_idx)
                 finally:
                     span.end()
                 telemetry.record(semconv.METRIC_HAL_SEND_ACTION_DURATION, (now() - t4) * 1e3, self._hal_attrs)
             else:
-                withheld = "deadline"
+                withheld = WithheldReason.DEADLINE
                 trace.get_current_span().add_event(
-                    semconv.EVENT_ACTION_DROPPED, {semconv.ATTR_WITHHELD_REASON: "deadline"}
+                    semconv.EVENT_ACTION_DROPPED, {semconv.ATTR_WITHHELD_REASON: WithheldReason.DEADLINE.value}
                 )
         t5 = now()
 
@@ -416,6 +431,12 @@ class HardwareRunner(InferenceRunnerBase):
         span.add_event(semconv.EVENT_SENSOR_STALE, attrs)
         metrics.add(semconv.METRIC_SENSORS_STALE_READS, 1, {semconv.ATTR_SENSOR_ID: exc.sensor_id})
 
+    def _on_invalid_action(self, span: Any, problem: str, tick_idx: int) -> None:
+        """A skill returned something that is not a valid action: withheld, traced, counted as a skill fault."""
+        span.set_status(Status(StatusCode.ERROR, problem))
+        span.add_event(semconv.EVENT_INVALID_ACTION, {semconv.ATTR_EXCEPTION_MESSAGE: problem})
+        _log.warning("skill returned an invalid action; withheld", problem=problem, tick=tick_idx)
+
     def _on_violation(self, span: trace.Span, exc: ROSSafetyViolation) -> None:
         attrs = {semconv.ATTR_SAFETY_CHECK_NAME: exc.check_name, semconv.ATTR_SAFETY_SEVERITY: exc.severity}
         span.record_exception(exc)
@@ -423,7 +444,7 @@ class HardwareRunner(InferenceRunnerBase):
         metrics.add(semconv.METRIC_SAFETY_VIOLATIONS, 1, attrs)
         _log.warning("action rejected by safety", check=exc.check_name, reason=str(exc))
 
-    def _estop(self, exc: ROSEStopRequested) -> str:
+    def _estop(self, exc: ROSEStopRequested) -> WithheldReason:
         """E-stop the robot and stop the loop; returns the withheld reason."""
         span = trace.get_current_span()
         span.add_event(semconv.EVENT_ESTOP_REQUESTED, {semconv.ATTR_ESTOP_REASON: str(exc)})
@@ -437,7 +458,7 @@ class HardwareRunner(InferenceRunnerBase):
         finally:
             estop_span.end()
         self.request_stop("estop")
-        return "estop"
+        return WithheldReason.ESTOP
 
 
 def _record_error(span: Any, exc: BaseException) -> None:

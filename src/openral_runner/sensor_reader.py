@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Protocol, runtime_checkable
 
-from openral_core import ROSPerceptionStale, ROSSyncError, SensorFrame, SensorReaderConfig
+from openral_core import ROSConfigError, ROSPerceptionStale, ROSSyncError, SensorFrame, SensorReaderConfig
 from openral_core.config import ModelT, validate_model
+from openral_core.config_files import resolve_user_path
 
 
 @runtime_checkable
@@ -62,6 +64,26 @@ def validate_backend_params(model: type[ModelT], config: SensorReaderConfig, *, 
         source=f"the {backend} sensor backend",
         field_prefix=backend_params_field(config),
     )
+
+
+def require_video_file(device: str, base_dir: Path | None, *, sensor_id: str) -> Path:
+    """The video file a sensor names, resolved against the deployment's folder; it must exist now.
+
+    Checked when the deployment is built, so ``openral validate`` refuses a missing file instead of
+    ``deploy`` failing at start-up.
+
+    Raises:
+        ROSConfigError: The file does not exist or is not a regular file.
+    """
+    field = f"sensors[{sensor_id}].backend_params.device"
+    path = resolve_user_path(device, base_dir, field=field)
+    if not path.is_file():
+        raise ROSConfigError(
+            f"video file not found: {path}",
+            field=field,
+            hint="check the path (a relative path is taken from the deployment file's folder)",
+        )
+    return path
 
 
 def read_synced_set(

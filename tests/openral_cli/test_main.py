@@ -115,21 +115,43 @@ def test_schema_is_json_schema_of_the_deployment(tmp_path: Path) -> None:
     assert json.loads(target.read_text()) == schema
 
 
-def test_sigint_finishes_the_tick_and_exits_130(tmp_path: Path) -> None:
+def test_sigint_finishes_the_tick_and_exits_130(tmp_path: Path, deploy_process) -> None:
     path = write(tmp_path, NULL_DEPLOYMENT)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "openral_cli", "deploy", "--config", str(path), "--json"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    time.sleep(2.0)
-    proc.send_signal(signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=30)
-    assert proc.returncode == 130, stderr
+    proc = deploy_process(["deploy", "--config", str(path), "--json"])
+    proc.wait_for("] running")
+    proc.signal_group(signal.SIGINT)
+    code, stdout = proc.finish(timeout=30)
+    assert code == 130, proc.stderr
     result = json.loads(stdout)
     assert result["stop_reason"] == "signal:SIGINT"
-    assert result["n_ticks"] > 0
+    assert "Traceback" not in proc.stderr
+
+
+def test_deploy_json_on_a_raise_deadline_stop_prints_the_partial_run(tmp_path: Path) -> None:
+    # 10 kHz with a 1-tick budget under "raise": the first late tick stops the run.
+    text = NULL_DEPLOYMENT.replace("rate_hz: 200", "rate_hz: 10000\ndeadline_overrun_policy: raise")
+    path = write(tmp_path, text)
+    proc = subprocess.run(
+        [sys.executable, "-m", "openral_cli", "deploy", "--config", str(path), "--max-ticks", "100000", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 1, proc.stderr
+    result = json.loads(proc.stdout)
+    assert result["stop_reason"] == "deadline"
+    assert result["deadline_misses"] >= 1
+    assert result["n_ticks"] >= 1
+    assert proc.stderr.count("error: ROSDeadlineMissed") == 1
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-1", "0", "abc"])
+def test_duration_must_be_a_positive_finite_number(tmp_path: Path, value: str) -> None:
+    path = write(tmp_path, NULL_DEPLOYMENT)
+    out = CliRunner().invoke(cli, ["deploy", "--config", str(path), "--duration", value])
+    assert out.exit_code == 2
+    assert "--duration" in out.output
 
 
 def test_deploy_records_mcap_with_one_tick_message_per_tick(tmp_path: Path) -> None:

@@ -11,6 +11,8 @@ A lock serialises transactions, so an e-stop from another thread waits for the c
 from __future__ import annotations
 
 import contextlib
+import errno
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -19,6 +21,7 @@ from types import TracebackType
 from typing import Self
 
 from openral_core.errors import ROSDependencyMissing, ROSHardwareError
+from openral_hal.device_lock import device_busy_error, lock_device, unlock_device
 from openral_hal.feetech import protocol as p
 
 try:
@@ -121,23 +124,45 @@ class FeetechBus:
             if self._serial is not None:
                 return
             try:
-                self._serial = self._factory(
+                ser = self._factory(
                     self.port, baudrate=self.baudrate, timeout=self.timeout_s, write_timeout=max(self.timeout_s, 0.1)
                 )
             except (serial.SerialException, OSError, ValueError) as exc:
+                if getattr(exc, "errno", None) == errno.EBUSY:  # another program holds it exclusively
+                    raise device_busy_error(self.port) from exc
                 raise ROSHardwareError(
                     f"cannot open servo bus port {self.port} at {self.baudrate} baud: {exc} "
                     "(is the arm's USB adapter plugged in, and is the port readable by this user?)"
                 ) from exc
+            try:
+                lock_device(ser.fileno(), self.port)
+            except BaseException:
+                with contextlib.suppress(serial.SerialException, OSError):
+                    ser.close()
+                raise
+            self._serial = ser
             self._buffer.clear()
 
     def close(self) -> None:
-        """Close the port. Idempotent; errors while closing a dead port are ignored."""
+        """Release and close the port. Idempotent; errors while closing a dead port are ignored."""
         with self._lock:
             ser, self._serial = self._serial, None
             if ser is not None:
+                with contextlib.suppress(serial.SerialException, OSError, ValueError):
+                    unlock_device(ser.fileno())
                 with contextlib.suppress(serial.SerialException, OSError):
                     ser.close()
+
+    def broadcast_now(self, packet: bytes) -> None:
+        """Write ``packet`` at once, without waiting for a transaction in progress; no reply is read.
+
+        For a broadcast that must go out even while another thread is stuck in a transaction
+        (torque off on a forced stop). Never raises.
+        """
+        ser = self._serial
+        if ser is not None:
+            with contextlib.suppress(serial.SerialException, OSError, ValueError):
+                os.write(ser.fileno(), packet)
 
     def __enter__(self) -> Self:
         self.open()

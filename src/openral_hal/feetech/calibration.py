@@ -18,8 +18,10 @@ from pathlib import Path
 from typing import Literal, Self
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from openral_core.config import validate_model
+from openral_core.config_files import load_config_file
 from openral_core.errors import ROSConfigError
 from openral_core.robot import RobotManifest
 from openral_hal.feetech.protocol import MAX_TICK, RAD_PER_TICK, TICKS_PER_REV
@@ -107,25 +109,16 @@ class ArmCalibration(BaseModel):
 
 
 def load_calibration(path: Path) -> ArmCalibration:
-    """Read a calibration file (``.json``, or YAML for any other suffix).
+    """Read a calibration file (``.json``, or YAML for any other suffix); ``~`` is expanded.
 
     Raises:
-        ROSConfigError: The file is missing, unreadable or invalid.
+        ROSConfigError: The file is missing, unreadable, not a regular file, or invalid.
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
-        return ArmCalibration.model_validate(data)
-    except OSError as exc:
-        raise ROSConfigError(
-            f"cannot read calibration file {path}: {exc}",
-            field="hal.params.calibration",
-            hint="create it with: openral calibrate --robot <id> --port <port> --output <file>",
-        ) from exc
-    except (ValueError, yaml.YAMLError) as exc:
-        # pydantic's ValidationError and json's JSONDecodeError are ValueErrors.
-        detail = exc.errors()[0] if isinstance(exc, ValidationError) else exc
-        raise ROSConfigError(f"calibration file {path} is invalid: {detail}", field="hal.params.calibration") from exc
+    field = "hal.params.calibration"
+    data = load_config_file(
+        path, field=field, missing_hint="create it with: openral calibrate --robot <id> --port <port> --output <file>"
+    )
+    return validate_model(ArmCalibration, data, source=f"calibration file {path}", field_prefix=field)
 
 
 def save_calibration(calibration: ArmCalibration, path: Path) -> None:

@@ -36,6 +36,9 @@ from openral_hal.feetech.emulator import ServoBusEmulator
 from openral_hal.feetech.protocol import Register
 from openral_hal.joints import JointIndex
 
+MAX_BAUDRATE = 4_000_000
+"""Fastest serial rate accepted; Linux USB serial adapters top out here (STS3215 servos at 1 Mbit/s)."""
+
 
 class SO10xFollowerParams(BaseModel):
     """Parameters of the ``so10x_follower`` HAL.
@@ -56,14 +59,14 @@ class SO10xFollowerParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     port: str | None = None
-    baudrate: int = Field(default=DEFAULT_BAUDRATE, gt=0)
+    baudrate: int = Field(default=DEFAULT_BAUDRATE, gt=0, le=MAX_BAUDRATE)
     calibration: Path | None = None
     timeout_s: float = Field(default=0.02, gt=0, le=1.0)
     retries: int = Field(default=2, ge=0, le=10)
     estop_torque_off: bool = False
     torque_off_on_disconnect: bool = True
     emulate: bool = False
-    emulator_speed_ticks_s: float = Field(default=3000.0, gt=0)
+    emulator_speed_ticks_s: float = Field(default=3000.0, gt=0, le=1e6)
 
     @model_validator(mode="after")
     def _port_or_emulate(self) -> SO10xFollowerParams:
@@ -157,13 +160,21 @@ class SO10xFollowerHAL:
                 self.bus = bus
 
     def disconnect(self) -> None:
-        """Optionally disable torque, then close the bus (and the emulator). Idempotent; never raises."""
+        """Optionally disable torque, then close the bus (and the emulator). Idempotent; never raises.
+
+        Safe from another thread while a transaction is stuck: the torque-off broadcast goes out
+        first, without waiting for the bus.
+        """
+        bus = self.bus
+        if bus is not None and self.params.torque_off_on_disconnect:
+            # One broadcast that needs no reply and no lock, so the arm goes limp even if another
+            # thread is stuck in a transaction; then, in order, acknowledged writes one per servo
+            # (a broadcast gets no reply, and closing the port right after it could lose it).
+            bus.broadcast_now(p.write_packet(p.BROADCAST_ID, Register.TORQUE_ENABLE, b"\x00"))
         with self._lock:
             bus, stack = self.bus, self._stack
             self.bus, self._stack = None, None
             if bus is not None and self.params.torque_off_on_disconnect:
-                # Acknowledged writes, one per servo: a SYNC_WRITE gets no reply, and closing the
-                # port right after it could lose the command that makes the arm limp.
                 for servo_id in self._ids:
                     with suppress(ROSHardwareError):
                         bus.write(servo_id, Register.TORQUE_ENABLE, b"\x00")

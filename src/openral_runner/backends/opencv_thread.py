@@ -33,7 +33,7 @@ from openral_core import (
     SensorReaderConfig,
 )
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
-from openral_runner.sensor_reader import validate_backend_params
+from openral_runner.sensor_reader import require_video_file, validate_backend_params
 
 try:
     import cv2
@@ -194,9 +194,8 @@ class OpenCVThreadSensorReader(SlotReader):
         """
         params = validate_backend_params(OpenCVThreadParams, config, backend="opencv_thread")
         device = params.device
-        if isinstance(device, str) and _is_file_path(device) and base_dir is not None:
-            path = Path(device).expanduser()
-            device = str(path if path.is_absolute() else base_dir / path)
+        if isinstance(device, str) and _is_file_path(device):
+            device = str(require_video_file(device, base_dir, sensor_id=config.sensor_id))
         return cls(
             sensor_id=config.sensor_id,
             device=device,

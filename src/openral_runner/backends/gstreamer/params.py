@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from openral_core import FrameEncoding, ROSConfigError, SensorReaderConfig
 from openral_core.config import config_error_from_validation
 from openral_runner.backends.gstreamer.pipeline import Codec, PipelineSpec, PixelFormat, Platform, Source
-from openral_runner.sensor_reader import backend_params_field
+from openral_runner.sensor_reader import backend_params_field, require_video_file
 
 FORMAT_OF_ENCODING: dict[FrameEncoding, PixelFormat] = {
     FrameEncoding.BGR8: PixelFormat.BGR,
@@ -127,8 +127,8 @@ def settings_from_config(config: SensorReaderConfig, *, base_dir: Path | None = 
             )
         return settings
     device = None if params.device is None else str(params.device)
-    if params.source is Source.FILE and device is not None and not Path(device).is_absolute():
-        device = str((base_dir or Path.cwd()) / device)
+    if params.source is Source.FILE and device is not None:
+        device = str(require_video_file(device, base_dir, sensor_id=sid))
     data: dict[str, Any] = {
         "source": params.source,
         "device": device,
