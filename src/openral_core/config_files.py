@@ -101,12 +101,12 @@ def read_config_file(
     file = expand_user_path(path, field=field)
     try:
         fd = os.open(file, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
-    except FileNotFoundError:
-        raise ROSConfigError(f"file not found: {file}", field=field, hint=missing_hint) from None
-    except PermissionError:
-        raise ROSConfigError(f"cannot read {file}: permission denied", field=field) from None
+    except FileNotFoundError as exc:
+        raise ROSConfigError(f"file not found: {file}", field=field, hint=missing_hint) from exc
+    except PermissionError as exc:
+        raise ROSConfigError(f"cannot read {file}: permission denied", field=field) from exc
     except OSError as exc:
-        raise ROSConfigError(f"cannot open {file}: {exc.strerror or exc}", field=field) from None
+        raise ROSConfigError(f"cannot open {file}: {exc.strerror or exc}", field=field) from exc
     try:
         info = os.fstat(fd)
         for is_kind, kind in _FILE_KINDS:
@@ -118,7 +118,7 @@ def read_config_file(
             )
         data = _read_at_most(fd, max_bytes + 1)
     except OSError as exc:
-        raise ROSConfigError(f"cannot read {file}: {exc.strerror or exc}", field=field) from None
+        raise ROSConfigError(f"cannot read {file}: {exc.strerror or exc}", field=field) from exc
     finally:
         os.close(fd)
     if len(data) > max_bytes:
@@ -156,7 +156,7 @@ def decode_config_bytes(data: bytes, *, source: str, field: str | None = None) -
             f"{source} is not UTF-8 text (byte 0x{data[exc.start]:02x} at offset {exc.start})",
             field=field,
             hint="save it as UTF-8",
-        ) from None
+        ) from exc
 
 
 def parse_config_text(text: str, *, source: str, field: str | None = None, json_text: bool = False) -> Any:
@@ -248,11 +248,11 @@ def _parse_yaml(text: str, *, source: str, field: str | None) -> Any:
         return loader.get_single_data()
     except yaml.MarkedYAMLError as exc:
         problem = " ".join(str(exc.problem or exc.context or "invalid YAML").split())
-        raise ROSConfigError(f"{source} is not valid YAML: {problem}{_mark(exc.problem_mark)}", field=field) from None
+        raise ROSConfigError(f"{source} is not valid YAML: {problem}{_mark(exc.problem_mark)}", field=field) from exc
     except yaml.YAMLError as exc:
-        raise ROSConfigError(f"{source} is not valid YAML: {' '.join(str(exc).split())}", field=field) from None
-    except RecursionError:
-        raise ROSConfigError(f"{source} is nested too deeply", field=field) from None
+        raise ROSConfigError(f"{source} is not valid YAML: {' '.join(str(exc).split())}", field=field) from exc
+    except RecursionError as exc:
+        raise ROSConfigError(f"{source} is nested too deeply", field=field) from exc
     finally:
         loader.dispose()
 
@@ -271,11 +271,11 @@ def _parse_json(text: str, *, source: str, field: str | None) -> Any:
     except json.JSONDecodeError as exc:
         raise ROSConfigError(
             f"{source} is not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}", field=field
-        ) from None
+        ) from exc
     except ValueError as exc:
-        raise ROSConfigError(f"{source} is not valid JSON: {exc}", field=field) from None
-    except RecursionError:
-        raise ROSConfigError(f"{source} is nested too deeply", field=field) from None
+        raise ROSConfigError(f"{source} is not valid JSON: {exc}", field=field) from exc
+    except RecursionError as exc:
+        raise ROSConfigError(f"{source} is nested too deeply", field=field) from exc
 
 
 # -- plain data ----------------------------------------------------------------------------------------

@@ -326,7 +326,7 @@ class InferenceRunnerBase(ABC):
             metrics.add(
                 semconv.METRIC_ACTIONS_WITHHELD, 1, {**self._metric_attrs, semconv.ATTR_WITHHELD_REASON: reason}
             )
-            if reason is WithheldReason.DEADLINE:
+            if reason == WithheldReason.DEADLINE:
                 self._stats.dropped += 1
             if reason in FAULT_REASONS:
                 self._stats.failed += 1

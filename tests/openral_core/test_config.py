@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -128,8 +129,15 @@ def test_missing_file(tmp_path: Path) -> None:
 
 
 def test_unreadable_path(tmp_path: Path) -> None:
-    with pytest.raises(ROSConfigError, match="cannot read"):
+    with pytest.raises(ROSConfigError, match="is a directory, not a regular file"):
         RobotEnvironment.from_yaml(tmp_path)
+    locked = tmp_path / "locked.yaml"
+    locked.write_text("hal: {}\n")
+    locked.chmod(0)
+    if os.access(locked, os.R_OK):  # root reads anything
+        return
+    with pytest.raises(ROSConfigError, match="permission denied"):
+        RobotEnvironment.from_yaml(locked)
 
 
 def test_validate_model_without_a_file() -> None:

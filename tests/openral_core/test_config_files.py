@@ -226,6 +226,8 @@ def test_booleans_and_text_are_not_numbers(tmp_path: Path) -> None:
         ("realtime: {cpu_affinity: []}\n", "realtime.cpu_affinity"),
         ("sensors: [{sensor_id: c, width: 1000000000000}]\n", "sensors[0].width"),
         ("sensors: [{sensor_id: c, fps: .inf}]\n", "sensors[0].fps"),
+        ("sensors: [{sensor_id: c, fps: 5000}]\n", "sensors[0].fps"),
+        ("thumbnail_hz: 1.0e+300\n", "thumbnail_hz"),
         ("rate_hz: .nan\n", "rate_hz"),
     ],
 )

@@ -47,14 +47,14 @@ def sensor_configs(draw: st.DrawFn, sensor_id: str | None = None) -> SensorReade
         backend=draw(st.sampled_from(list(SensorReaderBackend))),
         required=draw(st.booleans()),
         max_age_ms=draw(positive),
-        fps=draw(positive),
+        fps=draw(st.floats(min_value=1e-3, max_value=1000.0)),
         width=draw(st.none() | st.integers(1, 8192)),
         height=draw(st.none() | st.integers(1, 8192)),
         encoding=draw(st.sampled_from(list(FrameEncoding))),
         backend_params=draw(params),
         publish_to_ros=tee,
         publish_topic=draw(st.text(min_size=1, max_size=12)) if tee else None,
-        publish_rate_hz=draw(st.none() | positive),
+        publish_rate_hz=draw(st.none() | st.floats(min_value=1e-3, max_value=1000.0)),
     )
 
 
@@ -86,7 +86,7 @@ def safety_configs(draw: st.DrawFn) -> SafetyConfig:
 realtime_configs = st.builds(
     RealtimeConfig,
     sched_fifo_priority=st.none() | st.integers(1, 99),
-    cpu_affinity=st.none() | st.lists(st.integers(0, 255), max_size=4),
+    cpu_affinity=st.none() | st.lists(st.integers(0, 1023), min_size=1, max_size=4),
     switch_interval_s=st.none() | st.floats(min_value=1e-6, max_value=0.1),
     lock_memory=st.booleans(),
 )

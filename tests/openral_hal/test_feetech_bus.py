@@ -120,3 +120,44 @@ def test_open_missing_port_names_it() -> None:
 def test_not_open_raises() -> None:
     with pytest.raises(ROSHardwareError, match="not open"):
         FeetechBus("/dev/null").ping(1)
+
+
+def test_a_second_bus_on_the_same_port_is_refused_before_any_byte(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    requests = emu.requests
+    second = FeetechBus(emu.port, timeout_s=0.02)
+    with pytest.raises(ROSHardwareError, match="is in use by") as info:
+        second.open()
+    assert emu.port in str(info.value)
+    assert "one runner per device" in str(info.value)
+    assert not second.is_open
+    assert emu.requests == requests, "the refused bus wrote nothing"
+    bus.ping(1)  # the owner is unaffected
+
+
+def test_closing_releases_the_port_for_the_next_owner(emu: ServoBusEmulator) -> None:
+    with FeetechBus(emu.port, timeout_s=0.02) as first:
+        first.ping(1)
+    with FeetechBus(emu.port, timeout_s=0.02) as second:
+        second.ping(1)
+
+
+def test_broadcast_now_goes_out_while_a_transaction_holds_the_bus(bus: FeetechBus, emu: ServoBusEmulator) -> None:
+    import threading  # noqa: PLC0415
+
+    bus.sync_write(p.Register.TORQUE_ENABLE, dict.fromkeys(IDS, b"\x01"))
+    emu.mute = True  # replies lost: the next read waits out its attempts holding the bus lock
+    bus.timeout_s = 0.5
+    in_transaction = threading.Event()
+    emu.on_request = lambda _packet: in_transaction.set()
+    stuck = threading.Thread(target=lambda: pytest.raises(ROSHardwareError, bus.ping, 1))
+    stuck.start()
+    assert in_transaction.wait(2)
+    emu.on_request = None
+    started = time.monotonic()
+    bus.broadcast_now(p.write_packet(p.BROADCAST_ID, p.Register.TORQUE_ENABLE, b"\x00"))
+    assert time.monotonic() - started < 0.1, "did not wait for the stuck transaction"
+    deadline = time.monotonic() + 2
+    while any(emu.torque().values()) and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert not any(emu.torque().values())
+    stuck.join()

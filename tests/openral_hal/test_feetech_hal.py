@@ -259,3 +259,26 @@ def test_calibrate_refuses_unmoved_joints(emu: ServoBusEmulator, tmp_path: Path)
             sleep=tick,
         )
     assert not (tmp_path / "c.json").exists()
+
+
+def test_calibration_path_with_tilde_is_expanded(
+    cal_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    home = tmp_path / "home"
+    (home / ".config" / "openral").mkdir(parents=True)
+    (home / ".config" / "openral" / "so101_follower.json").write_bytes(cal_file.read_bytes())
+    monkeypatch.setenv("HOME", str(home))
+    hal = SO10xFollowerHAL(MANIFEST, {"port": "/dev/null", "calibration": "~/.config/openral/so101_follower.json"})
+    assert hal.calibration == load_calibration(cal_file)
+
+
+def test_calibration_that_is_not_a_regular_file_is_a_config_error() -> None:
+    with pytest.raises(ROSConfigError) as info:
+        SO10xFollowerHAL(MANIFEST, {"port": "/dev/null", "calibration": "/dev/zero"})
+    assert info.value.field == "hal.params.calibration"
+
+
+def test_baudrate_beyond_any_serial_adapter_is_a_config_error(cal_file: Path) -> None:
+    with pytest.raises(ROSConfigError) as info:
+        SO10xFollowerHAL(MANIFEST, {"port": "/dev/null", "calibration": str(cal_file), "baudrate": 10**30})
+    assert info.value.field == "hal.params.baudrate"

@@ -161,3 +161,84 @@ def test_without_a_fallback_a_dead_export_process_counts_what_it_drops(config: T
     assert (process.dropped_spans, process.dropped_samples) == (6, 3)
     assert not process.force_flush(timeout_s=1)
     assert not process.shutdown(timeout_s=5)
+
+
+PARENT = """
+import sys
+from openral_observability.export_process import ExportProcess
+from openral_observability.setup import resolve_config
+from openral_observability.span_pipeline import SpanRecord
+config = resolve_config(endpoint=sys.argv[1], service_name="arm", metric_interval_ms=60_000)
+process = ExportProcess(config)
+span = SpanRecord("rskill.tick", 1, 2, 1, None, None, False, 1, 2, None, [], 0, None)
+process.export([span] * 500, [])  # buffered telemetry the child would try to deliver
+process.send()
+print(process.pid, flush=True)
+sys.stdin.read()  # until the test kills this process
+"""
+
+
+def _unreachable_endpoint() -> str:
+    import socket  # noqa: PLC0415
+
+    with socket.socket() as probe:  # a port nothing listens on: connections are refused
+        probe.bind(("127.0.0.1", 0))
+        return f"http://127.0.0.1:{probe.getsockname()[1]}"
+
+
+def _gone(pid: int, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        with open(f"/proc/{pid}/stat") as stat:  # a zombie is gone too: it runs nothing
+            if stat.read().split(")")[-1].split()[0] == "Z":
+                return True
+        time.sleep(0.01)
+    return False
+
+
+def test_the_export_process_dies_with_a_sigkilled_parent(monkeypatch: pytest.MonkeyPatch) -> None:
+    import subprocess  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+
+    for key in list(os.environ):
+        if key.startswith("OTEL_"):
+            monkeypatch.delenv(key)
+    parent = subprocess.Popen(
+        [sys.executable, "-c", PARENT, _unreachable_endpoint()],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert parent.stdout is not None
+        child = int(parent.stdout.readline())
+        assert not _gone(child, 0.2), "the export process runs while its parent does"
+        parent.kill()
+        parent.wait(10)
+        assert _gone(child, 2.0), "the export process outlived its SIGKILLed parent"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+        for stream in (parent.stdin, parent.stdout):
+            if stream is not None:
+                stream.close()
+
+
+def test_shutdown_with_the_collector_unreachable_is_bounded_by_the_flush_timeout(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    for key in list(os.environ):
+        if key.startswith("OTEL_"):
+            monkeypatch.delenv(key)
+    config = resolve_config(endpoint=_unreachable_endpoint(), service_name="arm", metric_interval_ms=60_000)
+    assert config is not None
+    process = ExportProcess(config, flush_timeout_s=1.0)
+    process.export(_records() * 50, [])
+    started = time.monotonic()
+    process.shutdown(timeout_s=10)
+    assert time.monotonic() - started < 4.0, "the child's own flush is bounded, not the exporter's retries"
+    assert not process.running

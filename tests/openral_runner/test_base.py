@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import pytest
 
-from openral_core import DeadlineOverrunPolicy, ROSConfigError, ROSDeadlineMissed, ROSRuntimeError, TickResult
+from openral_core import (
+    DeadlineOverrunPolicy,
+    ROSConfigError,
+    ROSDeadlineMissed,
+    ROSRuntimeError,
+    TickResult,
+    WithheldReason,
+)
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.testing import FakeClock
 
@@ -32,7 +39,7 @@ class TimedRunner(InferenceRunnerBase):
             if self._deadline_allows_send():
                 self.sent.append(tick_idx)
             else:
-                reason = "deadline"
+                reason = WithheldReason.DEADLINE
         return TickResult.model_construct(
             tick_idx=tick_idx, inference_ms=1.0, action_applied=reason is None, withheld_reason=reason
         )

@@ -11,8 +11,10 @@ from openral_core import (
     ROSEStopRequested,
     ROSHardwareError,
     ROSSafetyViolation,
+    ROSStopRequested,
     SafetyEnvelope,
     SensorReaderConfig,
+    WithheldReason,
 )
 from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
@@ -452,3 +454,105 @@ def test_schedule_starts_just_after_a_camera_frame() -> None:
         assert world.image_frames is not None
         age_ms = (world.stamp_ns - world.image_frames["cam"].stamp_ns) / 1e6
         assert 0 <= age_ms <= 3.0  # read ~2 ms after its capture, not most of a period later
+
+
+def test_stop_requested_while_a_reader_opens_rolls_back_to_disconnected() -> None:
+    """A stop signal arriving during start-up (after the HAL connected) unwinds the same rollback."""
+    clock = FakeClock()
+    readers = [ScriptedReader(s, clock) for s in "abc"]
+    configs = [SensorReaderConfig(sensor_id=s) for s in "abc"]
+    runner, hal, _ = build(clock, readers=readers, sensor_configs=configs)
+    original_open = readers[1].open
+
+    def open_then_signal() -> None:
+        original_open()
+        runner.request_stop("signal:SIGTERM")  # what the signal watcher does, from another thread
+
+    readers[1].open = open_then_signal  # type: ignore[method-assign]
+    with pytest.raises(ROSStopRequested) as info:
+        runner.activate()
+    assert info.value.reason == "signal:SIGTERM"
+    assert hal.disconnect_calls == 1
+    assert not hal.is_connected
+    assert [r.close_calls for r in readers] == [1, 1, 0]
+    assert readers[2].open_calls == 0
+    assert not runner.is_active
+
+
+def test_stop_requested_before_activate_connects_nothing() -> None:
+    clock = FakeClock()
+    runner, hal, _ = build(clock)
+    runner.request_stop("signal:SIGINT")
+    with pytest.raises(ROSStopRequested):
+        runner.activate()
+    assert hal.calls == []
+    runner.deactivate()  # clears the request: the runner can start again
+    runner.activate()
+    assert runner.run(2).n_ticks == 2
+
+
+class OutputSkill(ScriptedSkill):
+    """Returns ``outputs[i]`` from step ``i`` whatever it is: the malformed results of a buggy skill."""
+
+    def __init__(self, outputs: list[object]) -> None:
+        super().__init__(JOINTS)
+        self.outputs = outputs
+
+    def _step_impl(self, world_state):  # type: ignore[override]
+        index = self.steps_taken
+        super()._step_impl(world_state)
+        return self.outputs[index] if index < len(self.outputs) else self.hold_action
+
+
+def _malformed() -> list[object]:
+    good = Action(joint_names=JOINTS, targets=[[0.1, 0.0, 0.0]])
+    return [
+        {"joint_names": JOINTS, "targets": [[0.1, 0.0, 0.0]]},
+        None,
+        Action.model_construct(joint_names=JOINTS, targets=np.zeros((1, 3))),
+        Action.model_construct(joint_names=JOINTS, targets=[np.zeros(3)]),
+        Action.model_construct(joint_names=JOINTS, targets=[[None, 0.0, 0.0]]),
+        Action.model_construct(joint_names=JOINTS, targets=[]),
+        Action.model_construct(joint_names=JOINTS, targets=[[0.1, 0.0]]),
+        Action.model_construct(joint_names=JOINTS, targets=[[True, 0.0, 0.0]]),
+        Action.model_construct(joint_names=[], targets=[[]]),
+        Action.model_construct(joint_names=JOINTS, targets=[["0.1", 0.0, 0.0]], control_mode="teleport"),
+        good,
+    ]
+
+
+def test_malformed_skill_output_is_withheld_as_a_typed_skill_fault() -> None:
+    clock = FakeClock()
+    outputs = _malformed()
+    runner, hal, _ = build(clock, skill=OutputSkill(outputs), safety=RejectingSafety(), max_consecutive_failures=100)
+    runner.activate()
+    result = runner.run(len(outputs))
+    assert result.n_ticks == len(outputs), "the run survives every malformed output"
+    bad = list(runner.recent_ticks)[:-1]
+    assert {t.withheld_reason for t in bad} == {WithheldReason.INVALID_ACTION}
+    assert all(t.requested_action is None and not t.action_applied for t in bad)
+    assert result.failed_ticks == len(bad), "each counts as a failed tick"
+    assert [a.first for a in hal.sent] == [[0.1, 0.0, 0.0]], "only the valid action reached the robot"
+    assert runner.recent_ticks[-1].action_applied
+
+
+def test_consecutive_malformed_outputs_stop_the_run_safely() -> None:
+    clock = FakeClock()
+    runner, hal, _ = build(clock, skill=OutputSkill([None] * 10), max_consecutive_failures=3)
+    runner.activate()
+    result = runner.run(10)
+    assert result.stop_reason == "faults"
+    assert result.n_ticks == 3
+    assert hal.sent == []
+
+
+def test_invalid_action_is_traced_on_the_inference_span(telemetry) -> None:
+    clock = FakeClock()
+    runner, _, _ = build(clock, skill=OutputSkill([{"not": "an action"}]))
+    runner.activate()
+    runner.run(1)
+    runner.deactivate()
+    runner.flush_telemetry()
+    (span,) = telemetry.spans("skill.chunk_inference")
+    assert [e.name for e in span.events] == ["openral.event.invalid_action"]
+    assert "dict, not an Action" in span.events[0].attributes["exception.message"]

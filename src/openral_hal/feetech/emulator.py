@@ -9,8 +9,11 @@ present speed; with torque off it stays where it is put (:meth:`ServoBusEmulator
 
 Faults are injected by assigning attributes while it runs: ``drop_replies`` (ignore the next N
 requests, so the client times out), ``corrupt_checksum`` (spoil the checksum of the next N
-replies), ``missing_ids`` (servos that never answer), ``reply_delay_s`` (answer late), and
+replies), ``missing_ids`` (servos that never answer), ``reply_delay_s`` (answer late), ``mute``
+(servos execute every request but no reply reaches the client: a broken reply line), and
 :meth:`ServoBusEmulator.disconnect` (the bus disappears: the master side is closed).
+``on_request`` is called with every decoded request before it is executed, so a test can act at
+an exact moment of the protocol (the instant torque goes on, say).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import select
 import threading
 import time
 import tty
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
 from typing import Self
 
@@ -111,6 +114,8 @@ class ServoBusEmulator:
         self.corrupt_checksum = 0
         self.missing_ids: set[int] = set()
         self.reply_delay_s = 0.0
+        self.mute = False
+        self.on_request: Callable[[p.Packet], None] | None = None
         self.requests = 0
         self.port = ""
         self._master = -1
@@ -232,13 +237,15 @@ class ServoBusEmulator:
 
     def _handle(self, master: int, packet: p.Packet) -> None:
         self.requests += 1
+        if self.on_request is not None:
+            self.on_request(packet)
         if self.drop_replies > 0:
             self.drop_replies -= 1
             return
         with self._lock:
             self._advance()
             replies = self._execute(packet)
-        if not replies:
+        if not replies or self.mute:
             return
         if self.reply_delay_s > 0:
             time.sleep(self.reply_delay_s)

@@ -446,7 +446,6 @@ def test_from_config_raw_pipeline_and_relative_file(tmp_path: Path) -> None:
             "element name",
         ),
         ({"encoding": "rgba8", "backend_params": {"source": "testsrc"}}, "sensors[cam].encoding", "rgba8"),
-        ({"fps": 5000, "backend_params": {"source": "testsrc"}}, "sensors[cam].fps", "1000"),
         (
             {"backend_params": {"source": "csi", "platform": "cpu_only"}},
             "sensors[cam].backend_params.source",
