@@ -84,7 +84,7 @@ def test_a_stuck_emergency_action_does_not_hold_the_exit(monkeypatch: pytest.Mon
 
 
 def test_late_registration_sees_an_earlier_signal() -> None:
-    signals, rec = make()
+    signals, _rec = make()
     signals.deliver(signal.SIGTERM, 0.0)
     late: list[str] = []
     signals.on_stop(late.append)

@@ -149,7 +149,15 @@ def test_broadcast_now_goes_out_while_a_transaction_holds_the_bus(bus: FeetechBu
     bus.timeout_s = 0.5
     in_transaction = threading.Event()
     emu.on_request = lambda _packet: in_transaction.set()
-    stuck = threading.Thread(target=lambda: pytest.raises(ROSHardwareError, bus.ping, 1))
+    failures: list[Exception] = []
+
+    def ping_stuck() -> None:
+        try:
+            bus.ping(1)
+        except ROSHardwareError as exc:
+            failures.append(exc)
+
+    stuck = threading.Thread(target=ping_stuck)
     stuck.start()
     assert in_transaction.wait(2)
     emu.on_request = None
@@ -161,3 +169,4 @@ def test_broadcast_now_goes_out_while_a_transaction_holds_the_bus(bus: FeetechBu
         time.sleep(0.005)
     assert not any(emu.torque().values())
     stuck.join()
+    assert len(failures) == 1, "the stuck transaction ran its course and failed"
