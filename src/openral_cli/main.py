@@ -90,7 +90,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     "--config",
     "config_path",
     required=True,
-    type=click.Path(path_type=Path, dir_okay=False),
+    type=click.Path(path_type=Path),
     help="Deployment file (RobotEnvironment YAML).",
 )
 @click.option("--max-ticks", type=click.IntRange(min=0), default=None, help="Stop after this many ticks.")
@@ -165,7 +165,7 @@ def deploy(
                 context=context_from_env(),
                 attributes={semconv.ATTR_CLI_COMMAND: "deploy", semconv.ATTR_CLI_CONFIG: str(config_path)},
             ) as span:
-                env = RobotEnvironment.from_yaml(config_path)
+                env = RobotEnvironment.from_yaml(config_path, field="--config")
                 try:
                     result = _deploy(
                         env,
@@ -253,7 +253,7 @@ def _deploy(
 
 
 @cli.command()
-@click.argument("config_path", metavar="FILE", type=click.Path(path_type=Path, dir_okay=False))
+@click.argument("config_path", metavar="FILE", type=click.Path(path_type=Path))
 @click.pass_context
 def validate(ctx: click.Context, config_path: Path) -> None:
     """Check a deployment file: schema, plugins, robot, skill parameters. Touches no hardware."""

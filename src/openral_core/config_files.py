@@ -106,12 +106,11 @@ def read_config_file(
     except PermissionError as exc:
         raise ROSConfigError(f"cannot read {file}: permission denied", field=field) from exc
     except OSError as exc:
+        _refuse_irregular(file, field, _stat_or_none(file))
         raise ROSConfigError(f"cannot open {file}: {exc.strerror or exc}", field=field) from exc
     try:
         info = os.fstat(fd)
-        for is_kind, kind in _FILE_KINDS:
-            if is_kind(info.st_mode):
-                raise ROSConfigError(f"{file} is {kind}, not a regular file", field=field, hint="name a regular file")
+        _refuse_irregular(file, field, info)
         if info.st_size > max_bytes:
             raise ROSConfigError(
                 f"{file} is {info.st_size} bytes; configuration files over {max_bytes} bytes are refused", field=field
@@ -126,6 +125,21 @@ def read_config_file(
             f"{file} is over {max_bytes} bytes; configuration files that large are refused", field=field
         )
     return decode_config_bytes(data, source=str(file), field=field)
+
+
+def _stat_or_none(path: Path) -> os.stat_result | None:
+    try:
+        return os.stat(path)
+    except OSError:
+        return None
+
+
+def _refuse_irregular(file: Path, field: str | None, info: os.stat_result | None) -> None:
+    if info is None:
+        return
+    for is_kind, kind in _FILE_KINDS:
+        if is_kind(info.st_mode):
+            raise ROSConfigError(f"{file} is {kind}, not a regular file", field=field, hint="name a regular file")
 
 
 def _read_at_most(fd: int, limit: int) -> bytes:
@@ -243,9 +257,17 @@ def _mark(mark: Any) -> str:
 
 
 def _parse_yaml(text: str, *, source: str, field: str | None) -> Any:
-    loader = _ConfigLoader(text)
+    loader: _ConfigLoader | None = None
     try:
+        loader = _ConfigLoader(text)
         return loader.get_single_data()
+    except yaml.reader.ReaderError as exc:
+        character = f"U+{exc.character:04X}" if isinstance(exc.character, int) else repr(exc.character)
+        raise ROSConfigError(
+            f"{source} is not valid YAML: control character {character} at offset {exc.position}",
+            field=field,
+            hint="remove it",
+        ) from exc
     except yaml.MarkedYAMLError as exc:
         problem = " ".join(str(exc.problem or exc.context or "invalid YAML").split())
         raise ROSConfigError(f"{source} is not valid YAML: {problem}{_mark(exc.problem_mark)}", field=field) from exc
@@ -254,7 +276,8 @@ def _parse_yaml(text: str, *, source: str, field: str | None) -> Any:
     except RecursionError as exc:
         raise ROSConfigError(f"{source} is nested too deeply", field=field) from exc
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def _parse_json(text: str, *, source: str, field: str | None) -> Any:

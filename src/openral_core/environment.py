@@ -256,11 +256,14 @@ class RobotEnvironment(_Block):
         return 1.0 / self.rate_hz
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> RobotEnvironment:
+    def from_yaml(cls, path: str | Path, *, field: str | None = None) -> RobotEnvironment:
         """Load and validate a deployment file.
 
+        Args:
+            field: The option that named the file (``--config``), named by file-level errors.
+
         Raises:
-            ROSConfigError: The file is missing, is not YAML, or a field is wrong; the
-                message names the field and the fix.
+            ROSConfigError: The file is missing, not a regular file, not UTF-8 YAML, or a field is
+                wrong; the message names the field and the fix.
         """
-        return load_model_yaml(cls, Path(path))
+        return load_model_yaml(cls, Path(path), field=field)

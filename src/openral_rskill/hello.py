@@ -97,9 +97,9 @@ class HelloSkill(RSkillBase):
         self.rate_hz = float(rate_hz)
         if self.params.frequency_hz >= self.rate_hz / 2:
             raise ROSConfigError(
-                f"{self.params.frequency_hz} Hz cannot be sampled at {self.rate_hz} Hz",
+                f"{self.params.frequency_hz} Hz cannot be sampled at rate_hz {self.rate_hz:g}",
                 field="vla.params.frequency_hz",
-                hint=f"use a frequency below {self.rate_hz / 2} Hz",
+                hint=f"use a frequency below {self.rate_hz / 2:g} Hz, or raise rate_hz",
             )
         self._names = robot.joint_names
         moving = _moving_joints(robot, self.params)

@@ -194,7 +194,7 @@ class GStreamerSensorReader(SlotReader):
         """
         settings = settings_from_config(config, base_dir=base_dir)
         try:
-            return cls(
+            reader = cls(
                 sensor_id=settings.sensor_id,
                 spec=settings.spec,
                 pipeline=settings.pipeline,
@@ -204,6 +204,8 @@ class GStreamerSensorReader(SlotReader):
                 width=settings.width,
                 height=settings.height,
             )
+            reader.check()  # what parses now starts later: validate refuses a pipeline open() would
+            return reader
         except ROSConfigError as exc:  # a builder error names a spec field: say where it came from
             if exc.field is not None and exc.field.startswith("sensors["):
                 raise
@@ -251,7 +253,20 @@ class GStreamerSensorReader(SlotReader):
 
     # -- pipeline plumbing -----------------------------------------------------------------
 
-    def _start(self) -> None:
+    def check(self) -> None:
+        """Parse the pipeline and check its appsink and formats without starting it.
+
+        No element leaves the NULL state, so no device is opened: this is what ``openral validate``
+        can know about a pipeline without the camera.
+
+        Raises:
+            ROSConfigError: As :meth:`open` would for the same pipeline.
+        """
+        pipeline, _sink = self._parse()
+        pipeline.set_state(Gst.State.NULL)
+
+    def _parse(self) -> tuple[Any, Any]:
+        """The parsed pipeline (state NULL) and its appsink, restricted to the formats the reader takes."""
         try:
             pipeline = Gst.parse_launch(self.pipeline_string)
         except GLib.Error as exc:
@@ -261,7 +276,6 @@ class GStreamerSensorReader(SlotReader):
                 f"sensor '{self.sensor_id}': '{self.pipeline_string}' is a single element, not a pipeline",
                 hint="link a source to the appsink: 'videotestsrc ! videoconvert ! appsink'",
             )
-        self._pipeline = pipeline
         sink = pipeline.get_by_name(self.appsink_name)
         if not isinstance(sink, GstApp.AppSink):
             found = "no element" if sink is None else f"a {type(sink).__name__}, not an appsink,"
@@ -269,8 +283,13 @@ class GStreamerSensorReader(SlotReader):
                 f"sensor '{self.sensor_id}': the pipeline has {found} named '{self.appsink_name}'",
                 hint=f"end the pipeline with 'appsink name={self.appsink_name}'",
             )
-        self._sink = sink
         self._restrict_caps(sink)
+        return pipeline, sink
+
+    def _start(self) -> None:
+        pipeline, sink = self._parse()
+        self._pipeline = pipeline
+        self._sink = sink
         sink.set_property("emit-signals", True)
         self._sample_handler = sink.connect("new-sample", self._on_new_sample)
         pipeline.use_clock(self._clock)
