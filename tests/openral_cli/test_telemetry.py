@@ -164,3 +164,26 @@ def test_log_lines_become_log_records_in_the_command_span(tmp_path: Path) -> Non
     assert record.severity_text == "WARN"
     assert (record.trace_id, record.span_id) == (root.trace_id, root.span_id)
     assert f"trace_id={root.trace_id.hex()}" in stderr  # the console line carries the ids too
+
+
+def test_group_ctrl_c_through_uv_with_otlp_export_still_flushes_and_exits_130(tmp_path: Path, deploy_process) -> None:
+    path = tmp_path / "robot.yaml"
+    path.write_text(NULL_DEPLOYMENT)
+    with OTLPReceiver() as receiver:
+        proc = deploy_process(
+            ["deploy", "--config", str(path), "--json", "--otlp-endpoint", receiver.endpoint], through_uv=True
+        )
+        assert receiver.wait_for(lambda r: any(s.name == semconv.SPAN_TICK for s in r.spans()), timeout_s=60)
+        proc.signal_group(signal.SIGINT)  # a terminal's Ctrl-C: uv and openral both get it, uv forwards a copy
+        proc.wait_for("SIGINT: stopping after this tick")
+        time.sleep(0.4)
+        proc.signal_group(signal.SIGINT)  # pressed again while telemetry is being flushed
+        code, stdout = proc.finish(timeout=60)
+        assert code == 130, proc.stderr
+        assert "Aborted" not in proc.stderr
+        result = json.loads(stdout)
+        assert receiver.wait_for(
+            lambda r: any(s.name == semconv.SPAN_CLI_COMMAND for s in r.spans()), timeout_s=10
+        ), "the command span, exported last, arrived"
+        spans = receiver.spans()
+    assert len([s for s in spans if s.name == semconv.SPAN_TICK]) == result["n_ticks"]

@@ -206,7 +206,7 @@ def test_non_finite_start_pose_is_refused(robot: RobotManifest, make_world: Make
         ({"amplitude": 0.1}, "amplitude", "allowed keys: amplitude_rad"),
         ({"amplitude_rad": -0.1}, "amplitude_rad", "greater than or equal to 0"),
         ({"frequency_hz": 0.0}, "frequency_hz", "greater than 0"),
-        ({"frequency_hz": 50.0}, "frequency_hz", "below 50.0 Hz"),
+        ({"frequency_hz": 50.0}, "frequency_hz", "below 50 Hz"),
         ({"ramp_s": 0.0}, "ramp_s", "greater than 0"),
         ({"max_speed_fraction": 1.5}, "max_speed_fraction", "less than or equal to 1"),
         ({"amplitude_rad": float("nan")}, "amplitude_rad", "finite"),
