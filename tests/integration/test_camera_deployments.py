@@ -44,7 +44,9 @@ def test_skill_sees_real_pixels_every_tick(deployment: str) -> None:
         # Give the camera time to deliver its first frame, then tick for two seconds.
         for reader in runner.sensor_readers:
             reader.read_synced(time.monotonic_ns() + 5_000_000_000)
+        published_before = {r.sensor_id: r.frames_published for r in runner.sensor_readers}
         result = runner.run(60)
+        published = {r.sensor_id: r.frames_published - published_before[r.sensor_id] for r in runner.sensor_readers}
     finally:
         runner.deactivate()
         skill.shutdown()
@@ -68,6 +70,11 @@ def test_skill_sees_real_pixels_every_tick(deployment: str) -> None:
             assert frame.encoding == config.encoding
             assert pixels.std() > 1.0, "a blank frame is not a camera image"
             seqs.add((sensor_id, frame.seq))
-    # Two seconds at 30 fps: the camera delivered new frames, not one frozen image.
-    assert len(seqs) > 20
+    # The camera kept delivering new frames (not one frozen image), and the skill saw nearly every
+    # one of them: how many a CPU renders in two seconds depends on the machine, what reaches the
+    # skill must not.
+    for sensor_id, count in published.items():
+        assert count >= 5, f"{sensor_id} published only {count} frames in two seconds"
+        seen_ids = {seq for sid, seq in seqs if sid == sensor_id}
+        assert len(seen_ids) >= 0.8 * count - 1, (sensor_id, len(seen_ids), count)
     assert np.isfinite(result.tick_ms_p99)
