@@ -182,8 +182,8 @@ def test_group_ctrl_c_through_uv_with_otlp_export_still_flushes_and_exits_130(tm
         assert code == 130, proc.stderr
         assert "Aborted" not in proc.stderr
         result = json.loads(stdout)
-        assert receiver.wait_for(
-            lambda r: any(s.name == semconv.SPAN_CLI_COMMAND for s in r.spans()), timeout_s=10
-        ), "the command span, exported last, arrived"
+        assert receiver.wait_for(lambda r: any(s.name == semconv.SPAN_CLI_COMMAND for s in r.spans()), timeout_s=10), (
+            "the command span, exported last, arrived"
+        )
         spans = receiver.spans()
     assert len([s for s in spans if s.name == semconv.SPAN_TICK]) == result["n_ticks"]
