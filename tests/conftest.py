@@ -21,6 +21,39 @@ from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanE
 ALLOWED_CI_SKIP = ("rclpy", "ROS 2")
 """ROS 2 has no installable distribution here; every other optional system package is installed by .ci/run."""
 
+SYSTEM_DEPS = "scripts/install-system-deps.sh"
+"""Installs the system packages pip cannot; skip reasons name it."""
+
+GSTREAMER_REASON = f"needs GStreamer and PyGObject: run {SYSTEM_DEPS}, then uv sync --extra gstreamer"
+GL_REASON = f"needs an off-screen OpenGL library (EGL or OSMesa): run {SYSTEM_DEPS}"
+
+
+def offscreen_gl_available() -> bool:
+    """Whether Mesa's EGL or OSMesa is installed (MuJoCo renders headless through one of them)."""
+    import ctypes.util  # noqa: PLC0415
+
+    return any(ctypes.util.find_library(name) for name in ("EGL", "OSMesa"))
+
+
+def gstreamer_available() -> bool:
+    """Whether PyGObject and GStreamer's introspection data import."""
+    try:
+        import gi  # noqa: PLC0415
+
+        gi.require_version("Gst", "1.0")
+        from gi.repository import Gst  # noqa: F401, PLC0415
+    except (ImportError, ValueError):
+        return False
+    return True
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Tests marked ``gl`` or ``gstreamer`` skip, naming the script that installs what they need."""
+    if item.get_closest_marker("gl") is not None and not offscreen_gl_available():
+        pytest.skip(GL_REASON)
+    if item.get_closest_marker("gstreamer") is not None and not gstreamer_available():
+        pytest.skip(GSTREAMER_REASON)
+
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):

@@ -75,8 +75,8 @@ class TickResult(BaseModel):
     requested_action: list[float] | None = None
     sent_action: list[float] | None = None
     trace_context: str | None = None
-    step_idx: int | None = None
-    episode_idx: int | None = None
+    step_idx: int | None = Field(default=None, ge=0)
+    episode_idx: int | None = Field(default=None, ge=0)
     reward: float | None = None
     terminated: bool | None = None
     truncated: bool | None = None

@@ -154,3 +154,10 @@ def test_unknown_field_is_rejected(model: type[Any], valid: dict[str, Any]) -> N
     model.model_validate(valid)
     with pytest.raises(ValidationError, match="tick_duration"):
         model.model_validate({**valid, "tick_duration": 1.0})
+
+
+@pytest.mark.parametrize("field", ["tick_idx", "step_idx", "episode_idx"])
+def test_indices_are_never_negative(field: str) -> None:
+    values = {"tick_idx": 0, field: -1}
+    with pytest.raises(ValidationError, match=field):
+        TickResult(**values)

@@ -416,7 +416,9 @@ def test_ros_leg_alone_and_unthrottled() -> None:
 
 
 def _parse_all(platform: Platform) -> int:
-    gi = pytest.importorskip("gi", reason="needs PyGObject: uv sync --extra gstreamer (and the GStreamer apt packages)")
+    gi = pytest.importorskip(
+        "gi", reason="needs GStreamer and PyGObject: run scripts/install-system-deps.sh, then uv sync --extra gstreamer"
+    )
     gi.require_version("Gst", "1.0")
     from gi.repository import Gst  # noqa: PLC0415 - optional: the rest of this file needs no gi
 
@@ -430,7 +432,8 @@ def _parse_all(platform: Platform) -> int:
             fields = {**spec_fields(source, codec, output_format=fmt, **tee), **size}
             if not size:
                 fields.pop("width"), fields.pop("height")
-            text = build_pipeline_string(PipelineSpec(**fields), platform)
+            # What this host builds for that platform: its missing accelerated elements fall back.
+            text = build_pipeline_string(PipelineSpec(**fields), platform, element_present=inspect_element_present)
             element = Gst.parse_launch(text)  # raises GLib.Error on an unknown element or property
             assert element.get_by_name("openral_sink") is not None
             if tee:
@@ -444,3 +447,23 @@ def _parse_all(platform: Platform) -> int:
 def test_every_built_string_parses_with_gst_parse_launch(platform: Platform) -> None:
     """On this host the real probe decides: missing accelerated elements are never emitted."""
     assert _parse_all(platform) > 100
+
+
+def test_an_explicit_platform_builds_its_pipeline_whatever_this_host_has(monkeypatch: pytest.MonkeyPatch) -> None:
+    probed: list[str] = []
+
+    def host_probe(name: str) -> bool:
+        probed.append(name)
+        return False  # this host has no accelerated element at all
+
+    monkeypatch.setattr("openral_runner.backends.gstreamer.pipeline.inspect_element_present", host_probe)
+    csi = build_pipeline_string(PipelineSpec(source="csi", width=1280, height=720), Platform.TEGRA)
+    assert elements(csi)[0] == "nvarguscamerasrc"
+    assert "nvvidconv" in csi
+    rtsp = build_pipeline_string(PipelineSpec(source="rtsp", device="rtsp://cam/s"), Platform.NVIDIA_DESKTOP)
+    assert "nvh264dec" in elements(rtsp)
+    assert probed == [], "an explicit platform is not probed on this host"
+    told = build_pipeline_string(
+        PipelineSpec(source="rtsp", device="rtsp://cam/s"), Platform.NVIDIA_DESKTOP, element_present=nothing
+    )
+    assert "avdec_h264" in elements(told), "a caller's own probe still decides"

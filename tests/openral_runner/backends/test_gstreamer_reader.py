@@ -22,7 +22,7 @@ from openral_runner.sensor_reader import SensorReader
 pytestmark = pytest.mark.gstreamer
 
 pytest.importorskip(
-    "gi", reason="needs PyGObject: uv sync --extra gstreamer, after apt-get install of the GStreamer packages"
+    "gi", reason="needs GStreamer and PyGObject: run scripts/install-system-deps.sh, then uv sync --extra gstreamer"
 )
 try:
     reader_module = importlib.import_module("openral_runner.backends.gstreamer.reader")
@@ -474,3 +474,13 @@ def test_from_config_unknown_key_lists_the_allowed_keys() -> None:
     assert "pipeline" in text
     assert "source" in text
     assert info.value.hint == "did you mean 'pattern'?"
+
+
+def test_explicit_platform_missing_here_is_named_when_the_deployment_is_built() -> None:
+    if has("nvh264dec"):
+        pytest.skip("this host has NVIDIA's decoder; the case is a host without it")
+    config = sensor(backend_params={"source": "rtsp", "device": "rtsp://cam/s", "platform": "nvidia_desktop"})
+    with pytest.raises(ROSConfigError, match="nvh264dec") as info:
+        from_config(config)
+    assert info.value.field is not None
+    assert info.value.field.startswith("sensors[cam]")

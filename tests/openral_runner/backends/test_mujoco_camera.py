@@ -32,7 +32,7 @@ from openral_core import (
 from openral_hal import load_robot_manifest
 from openral_hal.testing import RecordingHAL
 
-pytestmark = pytest.mark.mujoco
+pytestmark = [pytest.mark.mujoco, pytest.mark.gl]
 
 mujoco = pytest.importorskip("mujoco", reason="MuJoCo is not installed (extra 'twin')")
 pytest.importorskip(

@@ -11,7 +11,7 @@ import pytest
 from openral_core import ROSConfigError, ROSRuntimeError
 from openral_hal import load_robot_manifest
 
-pytestmark = pytest.mark.mujoco
+pytestmark = [pytest.mark.mujoco, pytest.mark.gl]
 
 pytest.importorskip("mujoco", reason="MuJoCo is not installed (extra 'twin')")
 

@@ -320,19 +320,28 @@ def build_pipeline_string(
     *,
     element_present: Callable[[str], bool] | None = None,
 ) -> str:
-    """The ``gst-launch`` string for ``spec`` on ``platform`` (detected when ``None``).
+    """The ``gst-launch`` string for ``spec`` on ``platform`` (this host's, detected, when ``None``).
+
+    An explicit ``platform`` builds that platform's pipeline whatever this host has (a Jetson
+    pipeline can be written on a laptop): its accelerated elements are assumed present unless
+    ``element_present`` says otherwise, and one the running host lacks is named by GStreamer
+    when the pipeline is parsed. Only for ``platform=None`` is this host probed.
 
     Args:
         spec: What to capture and how to deliver it.
         platform: Decides decoder and converter; :func:`detect_platform` when ``None``.
-        element_present: Probe for optional accelerated elements; defaults to
-            :func:`inspect_element_present`. Stock elements are not probed.
+        element_present: Probe for optional accelerated elements; by default
+            :func:`inspect_element_present` on a detected platform, every element on an explicit one.
 
     Raises:
         ROSConfigError: CSI or NVMM requested off Tegra, or a required Jetson element is missing.
     """
-    platform = detect_platform() if platform is None else Platform(platform)
-    present = inspect_element_present if element_present is None else element_present
+    if platform is None:
+        platform = detect_platform()
+        present = inspect_element_present if element_present is None else element_present
+    else:
+        platform = Platform(platform)
+        present = _assume_present if element_present is None else element_present
     if platform is not Platform.TEGRA and (spec.source is Source.CSI or spec.enable_nvmm):
         what = "source csi (nvarguscamerasrc)" if spec.source is Source.CSI else "enable_nvmm"
         raise ROSConfigError(
@@ -445,6 +454,11 @@ def _side_leg(lift: str | None, rate_hz: float | None, sink_name: str) -> str:
     convert = "videoconvert ! video/x-raw,format=BGR"
     sink = f"appsink name={sink_name} drop=true max-buffers=1 sync=false async=false"
     return " ! ".join(part for part in (lift, rate, convert, sink) if part)
+
+
+def _assume_present(_element: str) -> bool:
+    """An explicit platform has its elements: the first preference is built."""
+    return True
 
 
 def _require(candidates: tuple[str, ...], present: Callable[[str], bool], needed_for: str) -> str:

@@ -154,8 +154,11 @@ class GStreamerSensorReader(SlotReader):
                     f"'{spec.appsink_name}'",
                     hint="set PipelineSpec.appsink_name instead",
                 )
+            # An explicit platform builds its own pipeline (parsing names what this host lacks);
+            # only a detected one is tailored to the elements installed here.
+            probe = None if platform is not None else _has_element
             platform = platform or detect_platform(probe=_has_element)
-            self.pipeline_string = build_pipeline_string(spec, platform, element_present=_has_element)
+            self.pipeline_string = build_pipeline_string(spec, platform, element_present=probe)
             self.appsink_name = spec.appsink_name
             width = spec.width if width is None else width
             height = spec.height if height is None else height
