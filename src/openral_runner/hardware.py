@@ -38,7 +38,7 @@ from openral_rskill.base import RSkillBase
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import NullSafetyClient, SafetyClient
-from openral_runner.sensor_reader import SensorReader, read_synced_set
+from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
 from openral_runner.thumbnails import ThumbnailPublisher
 from openral_world_state import WorldStateAggregator
 
@@ -94,7 +94,10 @@ class HardwareRunner(InferenceRunnerBase):
         self.sync = sync
         self.thumbnails = thumbnails
         synced = set(sync.sensors) if sync is not None else set()
-        self._synced_readers = [r for r in self.sensor_readers if r.sensor_id in synced]
+        clock_ns = self._clock.now_ns
+        self._synced_readers = [
+            with_read_synced(r, clock_ns=clock_ns) for r in self.sensor_readers if r.sensor_id in synced
+        ]
         self._free_readers = [r for r in self.sensor_readers if r.sensor_id not in synced]
         self._sync_required = any(aggregator.is_required(sensor_id) for sensor_id in synced)
         self._required_ids = frozenset(r.sensor_id for r in self.sensor_readers if aggregator.is_required(r.sensor_id))
@@ -174,9 +177,10 @@ class HardwareRunner(InferenceRunnerBase):
         Without a camera, or if none delivers within two periods, the schedule starts now.
         """
         now = self._clock.now()
-        reader = next((r for r in self.sensor_readers if r.sensor_id in self._required_ids), None)
-        if reader is None:
+        first = next((r for r in self.sensor_readers if r.sensor_id in self._required_ids), None)
+        if first is None:
             return now
+        reader = with_read_synced(first, clock_ns=self._clock.now_ns)
         try:
             latest = reader.read_latest(float("inf")).stamp_ns
             wait_ns = int(2 * self.period_s * 1e9)

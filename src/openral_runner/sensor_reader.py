@@ -16,7 +16,8 @@ from openral_core.config_files import resolve_user_path
 class SensorReader(Protocol):
     """One sensor's capture, running in the background and serving its latest frame.
 
-    Backends live in ``openral_runner.backends`` and register in ``openral.sensor_backends``
+    This is the whole contract a backend must meet to run under the runner. Backends live in
+    ``openral_runner.backends`` or in other packages and register in ``openral.sensor_backends``
     (constructed with ``Cls.from_config(config, hal=..., robot=..., base_dir=...)``).
 
     ``read_latest`` never blocks on the device: it returns the freshest buffered frame, or
@@ -40,6 +41,15 @@ class SensorReader(Protocol):
     def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
         """The most recent frame, without waiting for a new one."""
 
+
+@runtime_checkable
+class SyncedSensorReader(SensorReader, Protocol):
+    """A reader that can also wait for its next frame (every built-in backend).
+
+    The runner uses it to start its schedule just after a frame and to make multi-camera sets;
+    a reader without it is given :class:`PollingSync` when the runner is built.
+    """
+
     def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
         """Wait until a frame captured after ``newer_than_ns`` is available, at most until ``deadline_ns``.
 
@@ -49,6 +59,71 @@ class SensorReader(Protocol):
             ROSPerceptionStale: No such frame by the deadline.
             ROSRuntimeError: The reader is closed or failed.
         """
+
+
+POLL_INTERVAL_S = 0.0005
+"""How often :class:`PollingSync` looks for a newer frame."""
+
+
+class PollingSync:
+    """``read_synced`` for a reader that only has ``read_latest``: polls for a newer frame.
+
+    Everything else is the wrapped reader's. Used only for the waits of start-up and of a
+    ``sync:`` set, never for a tick's ordinary read.
+    """
+
+    def __init__(self, reader: SensorReader, *, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        self.reader = reader
+        self.sensor_id = reader.sensor_id
+        self._clock_ns = clock_ns
+
+    @property
+    def is_open(self) -> bool:
+        """The wrapped reader's state."""
+        return self.reader.is_open
+
+    def open(self) -> None:
+        """Open the wrapped reader."""
+        self.reader.open()
+
+    def close(self) -> None:
+        """Close the wrapped reader."""
+        self.reader.close()
+
+    def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
+        """The wrapped reader's latest frame."""
+        return self.reader.read_latest(max_age_ms)
+
+    def read_synced(self, deadline_ns: int, *, newer_than_ns: int = 0) -> SensorFrame:
+        """Poll ``read_latest`` until a frame newer than ``newer_than_ns`` arrives or the deadline passes.
+
+        Raises:
+            ROSPerceptionStale: No such frame by the deadline.
+        """
+        age_ms: float | None = None
+        # Bounded on the wall clock too, so a clock that does not advance by itself cannot hang it.
+        give_up = time.monotonic() + max(0.0, (deadline_ns - self._clock_ns()) / 1e9)
+        while True:
+            try:
+                frame = self.reader.read_latest(float("inf"))
+            except ROSPerceptionStale:
+                frame = None
+            if frame is not None:
+                if frame.stamp_ns > newer_than_ns:
+                    return frame
+                age_ms = (self._clock_ns() - frame.stamp_ns) / 1e6
+            if self._clock_ns() >= deadline_ns or time.monotonic() >= give_up:
+                raise ROSPerceptionStale(self.sensor_id, age_ms=age_ms, max_age_ms=None)
+            time.sleep(POLL_INTERVAL_S)
+
+
+def with_read_synced(
+    reader: SensorReader, *, clock_ns: Callable[[], int] = time.monotonic_ns
+) -> SyncedSensorReader:
+    """``reader`` itself when it can wait for a frame, else a :class:`PollingSync` around it."""
+    if isinstance(reader, SyncedSensorReader):
+        return reader
+    return PollingSync(reader, clock_ns=clock_ns)
 
 
 def backend_params_field(config: SensorReaderConfig) -> str:
@@ -87,7 +162,7 @@ def require_video_file(device: str, base_dir: Path | None, *, sensor_id: str) ->
 
 
 def read_synced_set(
-    readers: Sequence[SensorReader],
+    readers: Sequence[SyncedSensorReader],
     *,
     max_skew_ms: float,
     deadline_ns: int,

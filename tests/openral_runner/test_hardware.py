@@ -556,3 +556,92 @@ def test_invalid_action_is_traced_on_the_inference_span(telemetry) -> None:
     (span,) = telemetry.spans("skill.chunk_inference")
     assert [e.name for e in span.events] == ["openral.event.invalid_action"]
     assert "dict, not an Action" in span.events[0].attributes["exception.message"]
+
+
+class SeedProtocolReader:
+    """A third-party reader written to the five members of the SensorReader protocol, nothing more.
+
+    Frames are captured in real time on a thread, stamped on the monotonic clock.
+    """
+
+    def __init__(self, sensor_id: str, period_s: float = 0.005) -> None:
+        import threading  # noqa: PLC0415
+
+        self.sensor_id = sensor_id
+        self._period_s = period_s
+        self._frame = None
+        self._seq = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._capture, daemon=True)
+        self._open = False
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def open(self) -> None:
+        self._open = True
+        self._thread.start()
+
+    def close(self) -> None:
+        self._open = False
+        self._stop.set()
+        self._thread.join(2)
+
+    def _capture(self) -> None:
+        import time  # noqa: PLC0415
+
+        from openral_core import FrameEncoding, SensorFrame  # noqa: PLC0415
+
+        while not self._stop.wait(self._period_s):
+            self._seq += 1
+            self._frame = SensorFrame(
+                sensor_id=self.sensor_id,
+                stamp_ns=time.monotonic_ns(),
+                width=2,
+                height=2,
+                encoding=FrameEncoding.BGR8,
+                seq=self._seq,
+                data=bytes(12),
+            )
+
+    def read_latest(self, max_age_ms: float | None = None):
+        from openral_core import ROSPerceptionStale  # noqa: PLC0415
+
+        if self._frame is None:
+            raise ROSPerceptionStale(self.sensor_id, age_ms=None, max_age_ms=max_age_ms)
+        return self._frame
+
+
+def test_a_reader_with_only_the_seed_protocol_runs_and_syncs() -> None:
+    from openral_core import SyncConfig  # noqa: PLC0415
+    from openral_runner.clock import SystemClock  # noqa: PLC0415
+    from openral_runner.sensor_reader import SyncedSensorReader  # noqa: PLC0415
+
+    readers = [SeedProtocolReader("left"), SeedProtocolReader("right"), SeedProtocolReader("wrist")]
+    assert not isinstance(readers[0], SyncedSensorReader)
+    configs = [SensorReaderConfig(sensor_id=r.sensor_id, max_age_ms=500) for r in readers]
+    sync = SyncConfig(sensors=["left", "right"], max_skew_ms=20.0, timeout_ms=30.0)
+    skill = ScriptedSkill(JOINTS)
+    skill.configure()
+    skill.activate()
+    runner = HardwareRunner(
+        hal=RecordingHAL(JOINTS),
+        skill=skill,
+        aggregator=WorldStateAggregator(joint_max_age_ms=1000.0, sensors=configs),
+        sensor_readers=readers,
+        sync=sync,
+        rate_hz=100.0,
+        clock=SystemClock(),
+    )
+    runner.activate()
+    try:
+        result = runner.run(20)
+    finally:
+        runner.deactivate()
+    assert result.n_ticks == 20
+    assert result.withheld_actions <= 2, [t.withheld_reason for t in runner.recent_ticks]
+    frames = skill.seen[-1].image_frames
+    assert frames is not None
+    assert set(frames) == {"left", "right", "wrist"}
+    assert abs(frames["left"].stamp_ns - frames["right"].stamp_ns) <= 20e6
