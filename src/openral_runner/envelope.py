@@ -19,7 +19,7 @@ from openral_core import (
     SafetyEnvelope,
     SafetyMode,
 )
-from openral_runner.kinematics import SiteChain, load_site_chain
+from openral_hal.kinematics import SiteChain, load_site_chain
 
 # Pull-back into the workspace box: stop within 0.1 mm of the boundary, or when the bracket on
 # the step is below 1/4096 of it, or after this many forward-kinematics evaluations.

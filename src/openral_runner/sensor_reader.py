@@ -117,9 +117,7 @@ class PollingSync:
             time.sleep(POLL_INTERVAL_S)
 
 
-def with_read_synced(
-    reader: SensorReader, *, clock_ns: Callable[[], int] = time.monotonic_ns
-) -> SyncedSensorReader:
+def with_read_synced(reader: SensorReader, *, clock_ns: Callable[[], int] = time.monotonic_ns) -> SyncedSensorReader:
     """``reader`` itself when it can wait for a frame, else a :class:`PollingSync` around it."""
     if isinstance(reader, SyncedSensorReader):
         return reader

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from openral_core import ROSConfigError
+from openral_hal.kinematics import chain_from_mjcf, load_site_chain
 from openral_hal.manifests import load_robot_manifest
-from openral_hal.mujoco_twin import resolve_model_file
-from openral_runner.kinematics import chain_from_mjcf, load_site_chain
+from openral_hal.model_files import resolve_model_file
 
 SO101 = load_robot_manifest("so101_follower")
 needs_so101_model = pytest.mark.skipif(

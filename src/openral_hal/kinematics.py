@@ -21,7 +21,7 @@ import numpy as np
 
 from openral_core.errors import ROSConfigError
 from openral_core.robot import RobotManifest
-from openral_hal.mujoco_twin import resolve_model_file
+from openral_hal.model_files import resolve_model_file
 
 _Affine = tuple[float, float, float, float, float, float, float, float, float, float, float, float]
 _UNSUPPORTED_ORIENTATION = ("axisangle", "euler", "xyaxes", "zaxis")
@@ -104,7 +104,7 @@ def load_site_chain(robot: RobotManifest) -> SiteChain:
             f"robot '{robot.robot_id}' has no MuJoCo model with an ee_site in its manifest",
             field="mujoco.ee_site",
         )
-    path = resolve_model_file(ref, robot.robot_id)
+    path = resolve_model_file(ref, robot.robot_id, needed_for="forward kinematics of the workspace box")
     return chain_from_mjcf(path, site=ref.ee_site, base=robot.base_frame, joint_names=robot.joint_names)
 
 
