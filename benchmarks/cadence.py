@@ -79,6 +79,7 @@ def run_openral(rate_hz: float, seconds: float) -> Figures:
     timer = ComponentTimer()
     hal, skill, aggregator, safety = _components(timer)
     runner = HardwareRunner(
+        thumbnail_hz=0.0,
         hal=hal,
         skill=skill,
         aggregator=aggregator,

@@ -118,6 +118,7 @@ def _child(mode: str, rate: float, seconds: float, endpoint: str) -> None:
     skill.configure()
     skill.activate()
     runner = HardwareRunner(
+        thumbnail_hz=0.0,
         hal=NullHAL(robot, {}),
         skill=skill,
         aggregator=WorldStateAggregator(joint_max_age_ms=1000.0, sensors=[SensorReaderConfig(sensor_id="front")]),

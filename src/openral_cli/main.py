@@ -15,7 +15,14 @@ from openral_cli.errors import EXIT_CONFIG, EXIT_OK, EXIT_RUNTIME, EXIT_SIGINT, 
 from openral_cli.report import format_run_result
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
-from openral_core import RobotEnvironment, ROSConfigError, ROSDeadlineMissed, ROSStopRequested, RunResult
+from openral_core import (
+    RobotEnvironment,
+    ROSConfigError,
+    ROSDeadlineMissed,
+    ROSStopRequested,
+    RunResult,
+    StopReason,
+)
 from openral_core.schema import robot_environment_schema_json
 from openral_hal.manifests import load_robot_manifest
 from openral_observability import semconv, tracer
@@ -27,7 +34,12 @@ from openral_runner.factory import build_runner
 FOXGLOVE_DEFAULT_PORT = 8765
 """Foxglove's conventional WebSocket port."""
 
-_STOP_EXIT_CODES = {"signal:SIGINT": EXIT_SIGINT, "signal:SIGTERM": EXIT_SIGTERM}
+_STOP_EXIT_CODES = {
+    StopReason.SIGINT: EXIT_SIGINT,
+    StopReason.SIGTERM: EXIT_SIGTERM,
+    StopReason.FAULTS: EXIT_RUNTIME,
+    StopReason.ESTOP: EXIT_RUNTIME,
+}
 _log = structlog.get_logger("openral")
 
 
@@ -195,9 +207,7 @@ def _print_result(result: RunResult, *, as_json: bool, err: bool = False) -> Non
     click.echo(result.model_dump_json(indent=2) if as_json else format_run_result(result), err=err)
 
 
-def _exit_code(stop_reason: str) -> int:
-    if stop_reason in ("faults", "estop"):
-        return EXIT_RUNTIME
+def _exit_code(stop_reason: StopReason) -> int:
     return _STOP_EXIT_CODES.get(stop_reason, EXIT_OK)
 
 
@@ -244,7 +254,7 @@ def _deploy(
             skill_id=runner.skill_id,
             rate_hz=runner.rate_hz,
             n_ticks=0,
-            stop_reason=exc.reason,
+            stop_reason=StopReason(exc.reason),
         )
     finally:
         skill.shutdown()

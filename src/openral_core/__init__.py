@@ -31,7 +31,7 @@ from openral_core.errors import (
     ROSSyncError,
 )
 from openral_core.frames import FrameEncoding, SensorFrame
-from openral_core.results import RunResult, TickResult, WithheldReason
+from openral_core.results import RunResult, StopReason, TickResult, WithheldReason
 from openral_core.robot import JointKind, JointSpec, ModelRef, RobotManifest
 from openral_core.skills import RSkillInfo, RSkillState
 from openral_core.world import ComponentDiagnostics, JointState, Pose6D, WorldState
@@ -75,6 +75,7 @@ __all__ = [
     "SensorFrame",
     "SensorReaderBackend",
     "SensorReaderConfig",
+    "StopReason",
     "SyncConfig",
     "TaskSpec",
     "TickResult",

@@ -22,11 +22,30 @@ class WithheldReason(StrEnum):
     INVALID_ACTION = "invalid_action"
     HAL_ERROR = "hal_error"
     ESTOP = "estop"
+    SKILL_DONE = "skill_done"
+    """The skill finished its task (raised ``ROSStopRequested``): nothing to send, the run ends."""
 
     @property
     def is_fault(self) -> bool:
         """Whether this reason is a failed tick (a component failed, not a policy decision)."""
         return self in _FAULTS
+
+
+class StopReason(StrEnum):
+    """Why ``run()`` returned."""
+
+    MAX_TICKS = "max_ticks"
+    DURATION = "duration"
+    TERMINATED = "terminated"
+    """The runner's own end condition (a simulation's episode count)."""
+    STOP_REQUESTED = "stop_requested"
+    SKILL_DONE = "skill_done"
+    """The skill raised ``ROSStopRequested``: its task is done."""
+    DEADLINE = "deadline"
+    ESTOP = "estop"
+    FAULTS = "faults"
+    SIGINT = "signal:SIGINT"
+    SIGTERM = "signal:SIGTERM"
 
 
 _FAULTS = frozenset(
@@ -90,8 +109,7 @@ class RunResult(BaseModel):
         start_jitter_us_*: How late each tick started relative to its scheduled slot.
         missed_slots: Slots skipped after overruns (the loop never bursts to catch up).
         overhead_us_mean: Tick time not spent in the five phases (runner bookkeeping).
-        stop_reason: ``max_ticks``, ``duration``, ``terminated``, ``stop_requested``, ``deadline``,
-            ``estop``, ``faults``.
+        stop_reason: Why the run ended (see :class:`StopReason`).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -122,6 +140,6 @@ class RunResult(BaseModel):
     stale_reads: int = Field(default=0, ge=0)
     safety_violations: int = Field(default=0, ge=0)
     failed_ticks: int = Field(default=0, ge=0)
-    stop_reason: str = "max_ticks"
+    stop_reason: StopReason = StopReason.MAX_TICKS
     trace_id: str | None = None
     metadata: dict[str, Any] = Field(default_factory=dict)

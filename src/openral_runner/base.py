@@ -33,6 +33,7 @@ from openral_core import (
     ROSRuntimeError,
     ROSStopRequested,
     RunResult,
+    StopReason,
     TickResult,
     WithheldReason,
     WorldState,
@@ -104,7 +105,7 @@ class InferenceRunnerBase(ABC):
         self._clock: Clock = clock or SystemClock()
         self._active = False
         self._tick_idx = 0
-        self._stop_reason: str | None = None
+        self._stop_reason: StopReason | None = None
         self._deadline_s = 0.0
         self._deadline_checked = False
         self._raise_pending = False
@@ -160,17 +161,17 @@ class InferenceRunnerBase(ABC):
         """Ticks whose deferred telemetry was dropped because the worker fell behind."""
         return self._recorder.worker.dropped
 
-    def request_stop(self, reason: str = "stop_requested") -> None:
+    def request_stop(self, reason: StopReason | str = StopReason.STOP_REQUESTED) -> None:
         """Ask ``run()`` to finish the current tick and return. Safe from signal handlers and threads.
 
         A request made before ``run()`` (during ``activate()``, say) is kept: start-up rolls back
         and ``run()`` returns at once. ``deactivate()`` clears it.
         """
         if self._stop_reason is None:
-            self._stop_reason = reason
+            self._stop_reason = StopReason(reason)
 
     @property
-    def stop_requested(self) -> str | None:
+    def stop_requested(self) -> StopReason | None:
         """The pending stop reason, ``None`` when nobody asked the runner to stop."""
         return self._stop_reason
 
@@ -337,7 +338,7 @@ class InferenceRunnerBase(ABC):
                         failures=self._stats.consecutive_failures,
                         last_reason=reason,
                     )
-                    self.request_stop("faults")
+                    self.request_stop(StopReason.FAULTS)
             else:
                 self._stats.consecutive_failures = 0
         else:
@@ -384,7 +385,7 @@ class InferenceRunnerBase(ABC):
 
     def _loop(
         self, max_ticks: int | None, duration_s: float | None, collector: BetweenTicksCollector | None
-    ) -> tuple[int, str]:
+    ) -> tuple[int, StopReason]:
         """The schedule: one tick per slot; returns the ticks run and why the loop stopped."""
         clock = self._clock
         period = self.period_s
@@ -393,7 +394,7 @@ class InferenceRunnerBase(ABC):
         end_limit = None if duration_s is None else t0 + duration_s
         slot = 0
         n = 0
-        stop_reason = "max_ticks"
+        stop_reason = StopReason.MAX_TICKS
         while True:
             if self._stop_reason is not None:
                 stop_reason = self._stop_reason
@@ -402,7 +403,7 @@ class InferenceRunnerBase(ABC):
                 break
             slot_start = t0 + slot * period
             if end_limit is not None and slot_start >= end_limit:
-                stop_reason = "duration"
+                stop_reason = StopReason.DURATION
                 break
             clock.sleep_until(slot_start)
             start = clock.now()
@@ -415,14 +416,14 @@ class InferenceRunnerBase(ABC):
             except ROSDeadlineMissed as exc:
                 n += 1
                 self._stats.run_t_end = clock.now()
-                exc.run_result = self._build_run_result(n, "deadline")
+                exc.run_result = self._build_run_result(n, StopReason.DEADLINE)
                 self._recorder.worker.flush()
                 raise
             n += 1
             end = clock.now()
             self._stats.run_t_end = end
             if self._should_terminate():
-                stop_reason = "terminated"
+                stop_reason = StopReason.TERMINATED
                 break
             next_slot = slot + 1
             if end > t0 + next_slot * period:
@@ -442,7 +443,7 @@ class InferenceRunnerBase(ABC):
         self._stats.reset()
         self.recent_ticks.clear()
 
-    def _build_run_result(self, n_ticks: int, stop_reason: str) -> RunResult:
+    def _build_run_result(self, n_ticks: int, stop_reason: StopReason) -> RunResult:
         return self._stats.result(
             runner_name=self.runner_name,
             skill_id=self.skill_id,

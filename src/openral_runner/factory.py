@@ -29,7 +29,6 @@ from openral_runner.clock import Clock
 from openral_runner.hardware import HardwareRunner
 from openral_runner.safety import SafetyClient
 from openral_runner.sensor_reader import SensorReader
-from openral_runner.thumbnails import ThumbnailPublisher
 from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
@@ -113,7 +112,7 @@ def build_runner(
         realtime=env.realtime,
         garbage_collection=env.realtime.garbage_collection,
         sync=env.sync,
-        thumbnails=ThumbnailPublisher(env.thumbnail_hz) if env.sensors and env.thumbnail_hz > 0 else None,
+        thumbnail_hz=env.thumbnail_hz,
     )
     return runner, skill
 

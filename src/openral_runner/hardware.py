@@ -9,6 +9,7 @@ holding its last accepted target.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from typing import Any
@@ -20,13 +21,16 @@ from opentelemetry.trace import Status, StatusCode
 from openral_core import (
     Action,
     RealtimeConfig,
+    ROSConfigError,
     ROSError,
     ROSEStopRequested,
     ROSPerceptionStale,
     ROSRuntimeError,
     ROSSafetyViolation,
+    ROSStopRequested,
     ROSSyncError,
     SensorFrame,
+    StopReason,
     SyncConfig,
     TickResult,
     WithheldReason,
@@ -63,7 +67,8 @@ class HardwareRunner(InferenceRunnerBase):
         task: Instruction placed in every world state.
         realtime: Real-time knobs applied to the calling thread at activation.
         sync: Cameras read as one set with bounded capture skew each tick.
-        thumbnails: Receives each tick's frames for throttled dashboard thumbnails.
+        thumbnail_hz: Rate of the small JPEG thumbnails of each camera for dashboards, encoded
+            off the tick thread; 0 disables them (as it does without cameras).
         **base_kwargs: ``InferenceRunnerBase`` options (rate, policy, clock, ...).
     """
 
@@ -78,7 +83,7 @@ class HardwareRunner(InferenceRunnerBase):
         task: str | None = None,
         realtime: RealtimeConfig | None = None,
         sync: SyncConfig | None = None,
-        thumbnails: ThumbnailPublisher | None = None,
+        thumbnail_hz: float = 25.0,
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("runner_name", "hardware_runner")
@@ -92,7 +97,9 @@ class HardwareRunner(InferenceRunnerBase):
         self.task = task
         self.realtime = realtime
         self.sync = sync
-        self.thumbnails = thumbnails
+        if not (math.isfinite(thumbnail_hz) and thumbnail_hz >= 0):
+            raise ROSConfigError(f"must be a finite number >= 0, got {thumbnail_hz}", field="thumbnail_hz")
+        self.thumbnails = ThumbnailPublisher(thumbnail_hz) if self.sensor_readers and thumbnail_hz > 0 else None
         synced = set(sync.sensors) if sync is not None else set()
         clock_ns = self._clock.now_ns
         self._synced_readers = [
@@ -285,6 +292,11 @@ class HardwareRunner(InferenceRunnerBase):
                     self._on_invalid_action(span, problem, tick_idx)
             except ROSEStopRequested as exc:
                 withheld = self._estop(exc)
+            except ROSStopRequested as exc:  # the skill's task is done: not a failure
+                withheld = WithheldReason.SKILL_DONE
+                span.add_event(semconv.EVENT_SKILL_DONE, {semconv.ATTR_EXCEPTION_MESSAGE: str(exc)})
+                _log.info("the skill finished its task; stopping", reason=str(exc), tick=tick_idx)
+                self.request_stop(StopReason.SKILL_DONE)
             except Exception as exc:  # the skill is third-party code: any failure withholds
                 withheld = WithheldReason.SKILL_ERROR
                 _record_error(span, exc)
@@ -461,7 +473,7 @@ class HardwareRunner(InferenceRunnerBase):
             _log.error("HAL estop failed", error=str(estop_exc))
         finally:
             estop_span.end()
-        self.request_stop("estop")
+        self.request_stop(StopReason.ESTOP)
         return WithheldReason.ESTOP
 
 

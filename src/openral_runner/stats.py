@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from openral_core import RunResult, TickResult
+from openral_core import RunResult, StopReason, TickResult
 
 DEFAULT_CAPACITY = 262_144
 """Samples kept for percentiles (~2.4 h at 30 Hz, ~4 min at 1 kHz); mean and max cover every sample."""
@@ -114,7 +114,7 @@ class RunStats:
         skill_id: str | None,
         rate_hz: float,
         n_ticks: int,
-        stop_reason: str,
+        stop_reason: StopReason,
         metadata: dict[str, Any],
     ) -> RunResult:
         """The run's result so far."""

@@ -209,3 +209,23 @@ def test_calibrate_rejects_unknown_joint(tmp_path: Path) -> None:
     assert out.exit_code == 2
     assert "--invert" in out.output
     assert "elbow_flex" in out.output
+
+
+@pytest.mark.parametrize(
+    ("reason", "code"),
+    [
+        ("max_ticks", 0),
+        ("duration", 0),
+        ("skill_done", 0),
+        ("terminated", 0),
+        ("faults", 1),
+        ("estop", 1),
+        ("signal:SIGINT", 130),
+        ("signal:SIGTERM", 143),
+    ],
+)
+def test_stop_reasons_map_to_exit_codes(reason: str, code: int) -> None:
+    from openral_cli.main import _exit_code  # noqa: PLC0415
+    from openral_core import StopReason  # noqa: PLC0415
+
+    assert _exit_code(StopReason(reason)) == code

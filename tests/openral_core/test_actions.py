@@ -130,18 +130,16 @@ def test_workspace_min_must_be_below_max_on_every_axis(axis: str, index: int) ->
         SafetyEnvelope(workspace_min=(0.0, 0.0, 0.0), workspace_max=tuple(high))  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("index", [0, 1, 2])
-def test_workspace_bound_must_not_be_nan(index: int) -> None:
-    low = [0.0, 0.0, 0.0]
-    low[index] = math.nan
-    try:
-        SafetyEnvelope(workspace_min=tuple(low), workspace_max=(1.0, 1.0, 1.0))  # type: ignore[arg-type]
-    except ValidationError:
-        return
-    pytest.fail(
-        "SafetyEnvelope accepted a NaN workspace bound: every comparison with NaN is false, so `lo >= hi` "
-        "passes and a box check like `p < lo or p > hi` never fires; reject non-finite bounds in _box"
-    )
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize(("axis", "index"), [("x", 0), ("y", 1), ("z", 2)])
+@pytest.mark.parametrize("corner", ["workspace_min", "workspace_max"])
+def test_workspace_bound_must_be_finite(bad: float, axis: str, index: int, corner: str) -> None:
+    # Every comparison with NaN is false, so without this check `lo >= hi` passes and a box check
+    # like `p < lo or p > hi` never fires.
+    corners = {"workspace_min": [0.0, 0.0, 0.0], "workspace_max": [1.0, 1.0, 1.0]}
+    corners[corner][index] = bad
+    with pytest.raises(ValidationError, match=rf"workspace bounds on {axis} must be finite"):
+        SafetyEnvelope(**{k: tuple(v) for k, v in corners.items()})  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(

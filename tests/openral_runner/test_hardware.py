@@ -8,12 +8,14 @@ import pytest
 from openral_core import (
     Action,
     DeadlineOverrunPolicy,
+    ROSConfigError,
     ROSEStopRequested,
     ROSHardwareError,
     ROSSafetyViolation,
     ROSStopRequested,
     SafetyEnvelope,
     SensorReaderConfig,
+    StopReason,
     WithheldReason,
 )
 from openral_hal.testing import RecordingHAL
@@ -72,6 +74,7 @@ def build(
     skill.configure()
     skill.activate()
     aggregator = WorldStateAggregator(joint_max_age_ms=100.0, sensors=sensor_configs or [], clock=clock.now_ns)
+    kwargs.setdefault("thumbnail_hz", 0.0)
     runner = HardwareRunner(
         hal=hal,
         skill=skill,
@@ -645,3 +648,30 @@ def test_a_reader_with_only_the_seed_protocol_runs_and_syncs() -> None:
     assert frames is not None
     assert set(frames) == {"left", "right", "wrist"}
     assert abs(frames["left"].stamp_ns - frames["right"].stamp_ns) <= 20e6
+
+
+def test_thumbnails_follow_the_seed_keyword() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("front", clock)
+    configs = [SensorReaderConfig(sensor_id="front")]
+    runner, _, _ = build(clock, readers=[cam], sensor_configs=configs, thumbnail_hz=25.0)
+    assert runner.thumbnails is not None
+    assert runner.thumbnails.rate_hz == 25.0
+    assert build(clock, readers=[cam], sensor_configs=configs, thumbnail_hz=0.0)[0].thumbnails is None
+    assert build(clock, thumbnail_hz=25.0)[0].thumbnails is None, "no camera, no thumbnails"
+    with pytest.raises(ROSConfigError, match="thumbnail_hz"):
+        build(clock, readers=[cam], sensor_configs=configs, thumbnail_hz=float("nan"))
+
+
+def test_a_skill_that_finishes_its_task_ends_the_run_cleanly() -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(JOINTS, actions=rows(0.1, 0.2), raise_on={2: ROSStopRequested("cube placed")})
+    runner, hal, _ = build(clock, skill=skill, max_consecutive_failures=1)
+    runner.activate()
+    result = runner.run(10)
+    assert result.stop_reason == StopReason.SKILL_DONE
+    assert result.n_ticks == 3
+    assert result.failed_ticks == 0
+    assert runner.recent_ticks[-1].withheld_reason == WithheldReason.SKILL_DONE
+    assert len(hal.sent) == 2
+    assert skill.last_error is None, "a finished task does not latch the skill's error"
