@@ -25,7 +25,11 @@ CPU_SETSIZE = 1024
 
 
 class SensorReaderBackend(StrEnum):
-    """Capture backend of one sensor; each is a plugin in ``openral.sensor_backends``."""
+    """The built-in capture backends (plugins in ``openral.sensor_backends``).
+
+    ``SensorReaderConfig.backend`` is any plugin id, checked against the registry when the
+    deployment is built, so a backend another package registers is used like these.
+    """
 
     OPENCV_THREAD = "opencv_thread"
     GSTREAMER = "gstreamer"
@@ -86,7 +90,12 @@ class SensorReaderConfig(_Block):
     """
 
     sensor_id: str = Field(pattern=_ID_PATTERN)
-    backend: SensorReaderBackend = SensorReaderBackend.OPENCV_THREAD
+    backend: str = Field(
+        default=SensorReaderBackend.OPENCV_THREAD.value,
+        pattern=_ID_PATTERN,
+        description="a plugin in the openral.sensor_backends entry-point group",
+        json_schema_extra={"examples": [b.value for b in SensorReaderBackend if b is not SensorReaderBackend.HOLOSCAN]},
+    )
     required: bool = True
     max_age_ms: float = Field(default=100.0, gt=0)
     fps: float = Field(default=30.0, gt=0, le=MAX_CAMERA_FPS)

@@ -121,7 +121,7 @@ def _build_reader(
     index: int, env: RobotEnvironment, hal: HAL, robot: RobotManifest, base_dir: Path | None
 ) -> SensorReader:
     config = env.sensors[index]
-    backend = SENSOR_BACKEND_REGISTRY.resolve(config.backend.value, field=f"sensors[{index}].backend")
+    backend = SENSOR_BACKEND_REGISTRY.resolve(config.backend, field=f"sensors[{index}].backend")
     reader: SensorReader = backend.from_config(config, hal=hal, robot=robot, base_dir=base_dir)
     return reader
 

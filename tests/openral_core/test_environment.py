@@ -179,7 +179,7 @@ def test_sensor_defaults() -> None:
     config = SensorReaderConfig(sensor_id="cam")
     assert config.required is True
     assert config.max_age_ms == 100.0
-    assert config.backend is SensorReaderBackend.OPENCV_THREAD
+    assert config.backend == SensorReaderBackend.OPENCV_THREAD
     assert config.encoding is FrameEncoding.BGR8
 
 

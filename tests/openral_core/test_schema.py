@@ -117,7 +117,7 @@ def test_unknown_keys_are_rejected(
         {"thumbnail_hz": -1},
         {"deadline_overrun_policy": "explode"},
         {"sensors": [{"sensor_id": "1front"}]},
-        {"sensors": [{"sensor_id": "front", "backend": "v4l2"}]},
+        {"sensors": [{"sensor_id": "front", "backend": "v4l2 camera"}]},
         {"safety": {"workspace_min": [0, 0]}},
         {"realtime": {"sched_fifo_priority": 100}},
     ],
