@@ -112,8 +112,6 @@ class HardwareRunner(InferenceRunnerBase):
         self._sensor_errors: set[str] = set()
         self._episode_idx = -1
         self._episode_open = False
-        self._safety_observe = getattr(self.safety_client, "observe_state", None)
-        self._safety_commit = getattr(self.safety_client, "commit", None)
         self._hal_attrs = {
             semconv.ATTR_HAL_ADAPTER: type(hal).__name__.lower(),
             semconv.ATTR_HAL_ROBOT_MODEL: hal.robot_id,
@@ -259,8 +257,7 @@ class HardwareRunner(InferenceRunnerBase):
         try:
             state = self.hal.read_state()
             self.aggregator.update_joint_state(state)
-            if self._safety_observe is not None:
-                self._safety_observe(state)
+            self.safety_client.observe_state(state)
         except ROSError as exc:
             withheld = WithheldReason.READ_STATE
             _record_error(span, exc)
@@ -341,8 +338,7 @@ class HardwareRunner(InferenceRunnerBase):
                 try:
                     self.hal.send_action(to_send)
                     applied = True
-                    if self._safety_commit is not None:
-                        self._safety_commit(to_send)
+                    self.safety_client.commit(to_send)
                 except ROSError as exc:
                     withheld = WithheldReason.HAL_ERROR
                     _record_error(span, exc)

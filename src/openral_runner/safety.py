@@ -7,7 +7,7 @@ from typing import Protocol, runtime_checkable
 import structlog
 from opentelemetry import trace
 
-from openral_core import Action, RobotManifest, SafetyConfig, SafetyEnvelope
+from openral_core import Action, JointState, RobotManifest, SafetyConfig, SafetyEnvelope
 from openral_observability import semconv
 
 _log = structlog.get_logger(__name__)
@@ -22,15 +22,28 @@ class SafetyClient(Protocol):
     reject it. The runner times the call inside a ``safety.check`` span. Raising
     ``ROSEStopRequested`` stops the loop and e-stops the robot. The runner is the
     supervisor boundary that catches both; nothing else does.
+
+    Every tick the runner also calls ``observe_state`` with the measured joints (before the
+    skill steps) and ``commit`` with the action actually sent; a client that keeps no state
+    inherits the no-op defaults by subclassing this protocol.
     """
 
     envelope: SafetyEnvelope
 
     def check_action(self, action: Action) -> Action | None:
         """Allow, replace or reject ``action``."""
+        ...
+
+    def observe_state(self, state: JointState) -> None:
+        """The joints measured this tick (a step limit is measured from them). Default: ignored."""
+        return
+
+    def commit(self, action: Action) -> None:
+        """The action that reached the robot this tick. Default: ignored."""
+        return
 
 
-class NullSafetyClient:
+class NullSafetyClient(SafetyClient):
     """Allows every action. Only for deployments that ask for it (``safety.client: null``).
 
     Each call still annotates the ``safety.check`` span so traces show the seam is wired.

@@ -40,6 +40,7 @@ pytest.importorskip("serial", reason="needs the 'serial' extra (pyserial) for th
 from openral_hal.feetech.calibration import ArmCalibration, save_calibration
 from openral_hal.feetech.emulator import ServoBusEmulator
 from openral_hal.feetech.hal import SO10xFollowerHAL
+from openral_runner.safety import SafetyClient
 
 ROBOT = load_robot_manifest("so101_follower")
 NAMES = ROBOT.joint_names
@@ -232,7 +233,7 @@ def test_safety_violation_never_reaches_the_hal(mode: SafetyMode) -> None:
 
 
 def test_estop_stops_the_loop_and_holds_the_arm(tmp_path: Path) -> None:
-    class EStopAfter:
+    class EStopAfter(SafetyClient):
         envelope = EnvelopeSafetyClient(ROBOT, rate_hz=RATE).envelope
 
         def __init__(self) -> None:

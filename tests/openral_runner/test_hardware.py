@@ -21,6 +21,7 @@ from openral_core import (
 from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.hardware import HardwareRunner
+from openral_runner.safety import SafetyClient
 from openral_runner.testing import FakeClock, ScriptedReader
 from openral_world_state import WorldStateAggregator
 
@@ -29,7 +30,7 @@ RATE = 30.0
 PERIOD = 1.0 / RATE
 
 
-class RejectingSafety:
+class RejectingSafety(SafetyClient):
     """Rejects the actions whose first target is negative; e-stops on a target of 99."""
 
     envelope = SafetyEnvelope()
@@ -46,7 +47,7 @@ class RejectingSafety:
         return None
 
 
-class HalvingSafety:
+class HalvingSafety(SafetyClient):
     """Replaces each action with one whose targets are halved (a clamping client)."""
 
     envelope = SafetyEnvelope()

@@ -53,7 +53,7 @@ def test_reading_the_status_of_a_run_imports_nothing() -> None:
         "recent = [TickResult(tick_idx=i, start_ns=i, tick_ms=1.0) for i in range(10)]\n"
         "before = set(sys.modules)\n"
         "stats.live_status(recent, elapsed_s=1.0, rate_hz=30.0)\n"
-        "stats.result(runner_name='r', skill_id=None, rate_hz=30.0, n_ticks=10, stop_reason='x', metadata={})\n"
+        "stats.result(runner_name='r', skill_id=None, rate_hz=30.0, n_ticks=10, stop_reason='max_ticks', metadata={})\n"
         "print(sorted(set(sys.modules) - before))\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)

@@ -21,6 +21,7 @@ from openral_observability import semconv
 from openral_observability.propagation import extract
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.hardware import HardwareRunner
+from openral_runner.safety import SafetyClient
 from openral_runner.testing import FakeClock, ScriptedReader
 from openral_world_state import WorldStateAggregator
 
@@ -37,7 +38,7 @@ PHASES = {
 }
 
 
-class RejectingSafety:
+class RejectingSafety(SafetyClient):
     """Rejects actions whose first target is negative; e-stops on 99."""
 
     envelope = SafetyEnvelope()
@@ -289,7 +290,7 @@ def test_live_status_reports_what_the_status_display_shows() -> None:
     assert {"deadline_misses", "missed_slots", "dropped_actions", "withheld_actions", "rate_hz"} <= set(status)
 
 
-class HalvingSafety:
+class HalvingSafety(SafetyClient):
     """A clamping client: sends every action with its targets halved."""
 
     envelope = SafetyEnvelope()

@@ -71,6 +71,7 @@ def test_worker_encodes_and_delivers_latest() -> None:
         done.set()
 
     publisher = ThumbnailPublisher(5.0, sink=sink)
+    before = set(threading.enumerate())
     publisher.start()
     try:
         assert publisher.offer(bgr_frame(width=320, height=240, stamp_ns=42))
@@ -79,7 +80,7 @@ def test_worker_encodes_and_delivers_latest() -> None:
         publisher.stop()
     assert got[0].stamp_ns == 42
     assert publisher.latest("cam") is got[0]
-    assert not any(t.name == "openral-thumbnails" for t in threading.enumerate())
+    assert not any(t.name == "openral-thumbnails" for t in set(threading.enumerate()) - before), "its worker stopped"
 
 
 def test_zero_rate_disables() -> None:
