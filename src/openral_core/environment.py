@@ -213,6 +213,16 @@ class RealtimeConfig(_Block):
     garbage_collection: GarbageCollection = GarbageCollection.BETWEEN_TICKS
 
 
+class ObserverConfig(_Block):
+    """One observer: a plugin in ``openral.observers`` that watches every tick (recorders, viewers, ...).
+
+    ``params`` go to the observer's own typed parameter model.
+    """
+
+    id: str = Field(pattern=_ID_PATTERN)
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
 class FaultPolicy(_Block):
     """How many consecutive failed ticks of each kind end the run safely.
 
@@ -239,6 +249,7 @@ class RobotEnvironment(_Block):
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
     realtime: RealtimeConfig = Field(default_factory=RealtimeConfig)
     faults: FaultPolicy = Field(default_factory=FaultPolicy)
+    observers: list[ObserverConfig] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _unique_sensor_ids(self) -> Self:

@@ -1,4 +1,4 @@
-"""Entry-point plugin registries: how skills, HALs, sensor backends and safety clients are found.
+"""Entry-point plugin registries: how skills, HALs, sensor backends, safety clients, robots and observers are found.
 
 Built-ins are registered in ``pyproject.toml`` exactly like third-party plugins. A registry
 lists entry-point names without importing anything; a plugin's module is imported only
@@ -18,6 +18,8 @@ SKILLS_GROUP = "openral.skills"
 SENSOR_BACKENDS_GROUP = "openral.sensor_backends"
 HALS_GROUP = "openral.hals"
 SAFETY_CLIENTS_GROUP = "openral.safety_clients"
+ROBOTS_GROUP = "openral.robots"
+OBSERVERS_GROUP = "openral.observers"
 
 
 class PluginRegistry(Mapping[str, Any]):

@@ -1,72 +1,82 @@
-"""Robot manifests shipped with openral: ``openral_hal/robots/<robot_id>/robot.yaml``.
+"""Robot manifests: found through the ``openral.robots`` entry-point group, the shipped ones included.
 
-They are package data read through ``importlib.resources``, so they are found the same way
-from a source checkout, an installed wheel or a zip import.
+An entry point names a robot id and points at its manifest: a path (``str``, ``os.PathLike`` or an
+``importlib.resources`` ``Traversable``) to a ``robot.yaml``, or a ready ``RobotManifest``. The
+shipped manifests are package data (``openral_hal/robots/<robot_id>/robot.yaml``) registered in
+``pyproject.toml`` exactly like another package's, so a third party adds a robot without touching
+openral. Every file goes through the same bounded, strict reader as a deployment.
 """
 
 from __future__ import annotations
 
-import difflib
 import functools
+import os
 from importlib.resources import files
 from importlib.resources.abc import Traversable
+from typing import Any
 
 from openral_core.config import validate_model
-from openral_core.config_files import parse_config_text
+from openral_core.config_files import parse_config_text, read_config_file
 from openral_core.errors import ROSConfigError
+from openral_core.plugins import ROBOTS_GROUP, PluginRegistry
 from openral_core.robot import RobotManifest
 
 MANIFEST_FILE = "robot.yaml"
 
+ROBOT_REGISTRY = PluginRegistry(ROBOTS_GROUP, kind="robot", field="hal.robot_id")
+"""Robot id → its manifest (a path to ``robot.yaml`` or a ``RobotManifest``)."""
 
-def _robots_dir() -> Traversable:
-    return files("openral_hal").joinpath("robots")
+
+def _shipped(robot_id: str) -> Traversable:
+    return files("openral_hal").joinpath("robots", robot_id, MANIFEST_FILE)
+
+
+SO100_FOLLOWER = _shipped("so100_follower")
+SO101_FOLLOWER = _shipped("so101_follower")
 
 
 def known_robots() -> list[str]:
-    """Ids of every shipped robot manifest, sorted."""
-    return list(_known())
-
-
-@functools.cache
-def _known() -> tuple[str, ...]:
-    return tuple(
-        sorted(
-            entry.name
-            for entry in _robots_dir().iterdir()
-            if entry.is_dir() and entry.joinpath(MANIFEST_FILE).is_file()
-        )
-    )
+    """Ids of every registered robot, sorted."""
+    return list(ROBOT_REGISTRY)
 
 
 def load_robot_manifest(robot_id: str) -> RobotManifest:
     """The manifest of ``robot_id``, validated. Cached: every caller shares one frozen object.
 
     Raises:
-        ROSConfigError: ``robot_id`` is not a shipped robot (the message lists the known ids and
+        ROSConfigError: ``robot_id`` is not registered (the message lists the known ids and
             suggests the closest, field ``hal.robot_id``), or its manifest is invalid.
     """
-    known = _known()
-    if robot_id not in known:
-        close = difflib.get_close_matches(robot_id, known, n=1)
-        raise ROSConfigError(
-            f"unknown robot '{robot_id}'; known robots: {', '.join(known) or 'none'}",
-            field="hal.robot_id",
-            hint=f"did you mean '{close[0]}'?" if close else None,
-        )
     return _load(robot_id)
 
 
 @functools.cache
 def _load(robot_id: str) -> RobotManifest:
-    resource = _robots_dir().joinpath(robot_id, MANIFEST_FILE)
-    source = f"openral_hal/robots/{robot_id}/{MANIFEST_FILE}"
-    data = parse_config_text(resource.read_text(encoding="utf-8"), source=source)
-    manifest = validate_model(RobotManifest, data, source=source)
+    entry = ROBOT_REGISTRY.resolve(robot_id)
+    manifest = _manifest_from(entry, robot_id)
     if manifest.robot_id != robot_id:
         raise ROSConfigError(
-            f"{source} declares robot_id '{manifest.robot_id}' but lives in the directory '{robot_id}'",
+            f"the manifest registered as robot '{robot_id}' declares robot_id '{manifest.robot_id}'",
             field="robot_id",
-            hint="make the robot_id match its directory name",
+            hint="make the robot_id match the name it is registered under",
         )
     return manifest
+
+
+def _manifest_from(entry: Any, robot_id: str) -> RobotManifest:
+    if isinstance(entry, RobotManifest):
+        return entry
+    if isinstance(entry, Traversable) and not isinstance(entry, os.PathLike):
+        source = f"robot '{robot_id}' ({entry})"
+        data = parse_config_text(entry.read_text(encoding="utf-8"), source=source)
+    elif isinstance(entry, str | os.PathLike):
+        path = os.fspath(entry)
+        source = f"robot '{robot_id}' ({path})"
+        data = parse_config_text(read_config_file(path, field="hal.robot_id"), source=source)
+    else:
+        raise ROSConfigError(
+            f"the openral.robots entry point '{robot_id}' gives a {type(entry).__name__}, "
+            "not a RobotManifest or a path to a robot.yaml",
+            field="hal.robot_id",
+        )
+    return validate_model(RobotManifest, data, source=source)

@@ -16,6 +16,7 @@ from openral_core import RobotEnvironment, RobotManifest, ROSConfigError
 from openral_core.config_files import resolve_user_path
 from openral_core.plugins import (
     HALS_GROUP,
+    OBSERVERS_GROUP,
     SAFETY_CLIENTS_GROUP,
     SENSOR_BACKENDS_GROUP,
     SKILLS_GROUP,
@@ -47,6 +48,9 @@ HAL_REGISTRY = PluginRegistry(HALS_GROUP, kind="HAL adapter", field="hal.adapter
 
 SAFETY_CLIENT_REGISTRY = PluginRegistry(SAFETY_CLIENTS_GROUP, kind="safety client", field="safety.client")
 """Client id → safety client class (``Cls.from_config(config, robot=..., rate_hz=...)``)."""
+
+OBSERVER_REGISTRY = PluginRegistry(OBSERVERS_GROUP, kind="observer", field="observers[].id")
+"""Observer id → observer class (``Cls.from_config(params, robot=..., env=..., base_dir=...)``)."""
 
 JOINT_STATE_MAX_AGE_TICKS = 3
 """A joint state older than this many periods is stale (it is read every tick)."""
@@ -114,6 +118,9 @@ def build_runner(
         sync=env.sync,
         thumbnail_hz=env.thumbnail_hz,
     )
+    for index, spec in enumerate(env.observers):
+        observer_cls = OBSERVER_REGISTRY.resolve(spec.id, field=f"observers[{index}].id")
+        runner.observers.append(observer_cls.from_config(spec.params, robot=robot, env=env, base_dir=base_dir))
     return runner, skill
 
 
@@ -128,6 +135,7 @@ def _build_reader(
 
 __all__ = [
     "HAL_REGISTRY",
+    "OBSERVER_REGISTRY",
     "SAFETY_CLIENT_REGISTRY",
     "SENSOR_BACKEND_REGISTRY",
     "SKILL_REGISTRY",
