@@ -55,16 +55,27 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
         pytest.skip(GSTREAMER_REASON)
 
 
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):
-    outcome = yield
-    report = outcome.get_result()
+def _fail_ci_skip(report: pytest.TestReport | pytest.CollectReport) -> None:
+    """Under CI=true a skip is a failure, unless it is ROS 2's."""
     if os.environ.get("CI") != "true" or not report.skipped:
         return
     reason = str(report.longrepr[-1]) if isinstance(report.longrepr, tuple) else str(report.longrepr)
     if not any(allowed in reason for allowed in ALLOWED_CI_SKIP):
         report.outcome = "failed"
         report.longrepr = f"skipped on CI, where every optional dependency must be installed: {reason}"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):
+    outcome = yield
+    _fail_ci_skip(outcome.get_result())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector: pytest.Collector):
+    """A whole module skipped at import (``pytest.importorskip`` at module level) counts too."""
+    outcome = yield
+    _fail_ci_skip(outcome.get_result())
 
 
 class OTelCapture:
