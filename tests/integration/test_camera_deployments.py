@@ -17,7 +17,10 @@ DEPLOYMENTS = Path(__file__).resolve().parents[2] / "deployments"
 
 CASES = {
     "video_file.yaml": ("cv2", "needs the 'opencv' extra"),
-    "gstreamer_testsrc.yaml": ("gi", "needs GStreamer and PyGObject (the 'gstreamer' extra and system packages)"),
+    "gstreamer_testsrc.yaml": (
+        "gi",
+        "needs GStreamer and PyGObject: run scripts/install-system-deps.sh, then uv sync --extra gstreamer",
+    ),
     "so101_twin_camera.yaml": ("mujoco", "needs the 'twin' extra"),
 }
 MARKS = {"gstreamer_testsrc.yaml": pytest.mark.gstreamer, "so101_twin_camera.yaml": pytest.mark.gl}
