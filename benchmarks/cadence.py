@@ -26,7 +26,7 @@ from openral_hal.manifests import load_robot_manifest
 from openral_hal.null import NullHAL
 from openral_rskill.noop import HoldSkill
 from openral_runner.hardware import HardwareRunner
-from openral_runner.safety import NullSafetyClient
+from openral_runner.safety import NullSafetyClient, SafetyClient
 from openral_world_state import WorldStateAggregator
 
 
@@ -54,7 +54,7 @@ class Figures:
         )
 
 
-class _TimedSafety:
+class _TimedSafety(SafetyClient):
     def __init__(self, timer: ComponentTimer) -> None:
         self.envelope = SafetyEnvelope()
         self._inner = NullSafetyClient()

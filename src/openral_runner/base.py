@@ -1,6 +1,7 @@
 """``InferenceRunnerBase``: cadence, deadline policy, the tick span, and honest run statistics.
 
-Subclasses implement ``_tick_impl``; the base owns everything around one tick:
+Subclasses implement ``_tick_impl``, which writes its phases into the tick's ``TickContext``; the base
+owns everything around one tick and builds its ``TickResult`` once:
 
 * **Absolute schedule.** Slot ``k`` starts at ``t0 + k / rate_hz``. After an overrun the next
   tick starts at the next future slot boundary; skipped slots are counted, phase is kept, and
@@ -45,6 +46,7 @@ from openral_runner.clock import Clock, SystemClock
 from openral_runner.gc_policy import BetweenTicksCollector
 from openral_runner.observer import TickObserver
 from openral_runner.stats import RunStats
+from openral_runner.tick_context import TickContext
 from openral_runner.tick_span import tick_span_attributes
 
 _log = structlog.get_logger(__name__)
@@ -53,11 +55,6 @@ FAULT_REASONS: Final = frozenset(reason for reason in WithheldReason if reason.i
 """Withheld reasons that count towards ``max_consecutive_failures``."""
 
 _RECENT_TICKS: Final = 4096
-
-
-def _fill(result: TickResult, values: dict[str, Any]) -> None:
-    """Set fields on a tick result without pydantic's per-assignment machinery (hot path)."""
-    result.__dict__.update(values)
 
 
 class InferenceRunnerBase(ABC):
@@ -106,10 +103,8 @@ class InferenceRunnerBase(ABC):
         self._active = False
         self._tick_idx = 0
         self._stop_reason: StopReason | None = None
-        self._deadline_s = 0.0
-        self._deadline_checked = False
+        self._tick = TickContext(0, 0.0, 0.0)
         self._raise_pending = False
-        self._lateness_ms = 0.0
         self._metric_attrs = {semconv.ATTR_SKILL_ID: skill_id or runner_name}
         # Each tick's spans and metric samples are recorded as data and exported by a worker
         # thread under an SDK provider (``openral_observability.deferred``); with the API's no-op
@@ -121,7 +116,6 @@ class InferenceRunnerBase(ABC):
         self.metadata: dict[str, Any] = {}
         self.recent_ticks: deque[TickResult] = deque(maxlen=_RECENT_TICKS)
         self.observers: list[TickObserver] = []
-        self._last_world: WorldState | None = None
         self._stats = RunStats()
         self._reset_counters()
 
@@ -186,8 +180,12 @@ class InferenceRunnerBase(ABC):
             raise ROSStopRequested(f"{self.runner_name}: stop requested during start-up ({reason})", reason=reason)
 
     @abstractmethod
-    def _tick_impl(self, tick_idx: int) -> TickResult:
-        """Run one tick's phases; call ``_deadline_allows_send()`` right before actuating."""
+    def _tick_impl(self, tick: TickContext) -> None:
+        """Run one tick's phases, writing what they learn into ``tick``.
+
+        Call ``_deadline_allows_send()`` right before actuating; the base builds the
+        ``TickResult`` from ``tick`` when this returns.
+        """
 
     def _schedule_origin(self) -> float:
         """When slot 0 of ``run()`` starts (scheduling clock); subclasses may choose a phase. Now by default."""
@@ -220,41 +218,31 @@ class InferenceRunnerBase(ABC):
     def _run_tick(self, start_s: float, deadline_s: float) -> TickResult:
         idx = self._tick_idx
         self._tick_idx += 1
-        self._deadline_s = deadline_s
-        self._deadline_checked = False
+        tick = TickContext(idx, start_s, deadline_s)
+        self._tick = tick
         self._raise_pending = False
-        self._lateness_ms = 0.0
         recorder = self._recorder
         telemetry = recorder.begin()
         self._telemetry = telemetry
         span = telemetry.span
         worker = recorder.worker
         worker.busy = True
-        token = context.attach(trace.set_span_in_context(span))
+        # Current for whatever the phases start (a skill's own spans); under the API's no-op
+        # provider there is nothing to parent, and the attach is skipped.
+        token = context.attach(trace.set_span_in_context(span)) if span.get_span_context().is_valid else None
         tick_attributes: dict[str, Any] | None = None
         try:
-            result = self._tick_impl(idx)
-            if not self._deadline_checked:
+            self._tick_impl(tick)
+            if not tick.deadline_checked:
                 self._deadline_allows_send()
-            end_s = self._clock.now()
-            tick_ms = (end_s - start_s) * 1e3
-            _fill(
-                result,
-                {
-                    "tick_idx": idx,
-                    "start_ns": int(start_s * 1e9),
-                    "tick_ms": tick_ms,
-                    "deadline_missed": self._lateness_ms > 0.0,
-                    "lateness_ms": self._lateness_ms,
-                    "trace_context": traceparent(span),
-                },
-            )
+            tick_ms = (self._clock.now() - start_s) * 1e3
+            result = tick.result(tick_ms=tick_ms, trace_context=traceparent(span) if token is not None else None)
             tick_attributes = self._account(result, span)
             if self.observers:
-                self._notify(result)
+                self._notify(result, tick.world)
             if self._raise_pending:
                 error = ROSDeadlineMissed(
-                    f"tick {idx} was {self._lateness_ms:.2f} ms past its deadline "
+                    f"tick {idx} was {tick.lateness_ms:.2f} ms past its deadline "
                     f"(policy raise): action withheld, robot holding",
                     tick_result=result,
                 )
@@ -262,7 +250,8 @@ class InferenceRunnerBase(ABC):
                 span.set_status(Status(StatusCode.ERROR, "deadline missed"))
                 raise error
         finally:
-            context.detach(token)
+            if token is not None:
+                context.detach(token)
             recorder.end(telemetry, tick_attributes)
             worker.busy = False
         return result
@@ -272,17 +261,18 @@ class InferenceRunnerBase(ABC):
 
         Call once per tick, after safety and immediately before actuating.
         """
-        self._deadline_checked = True
-        late_s = self._clock.now() - self._deadline_s
+        tick = self._tick
+        tick.deadline_checked = True
+        late_s = self._clock.now() - tick.deadline_s
         if late_s <= 0.0:
             return True
-        self._lateness_ms = late_s * 1e3
+        tick.lateness_ms = late_s * 1e3
         self._stats.deadline_misses += 1
         metrics.add(semconv.METRIC_DEADLINE_MISSES, 1, self._metric_attrs)
-        trace.get_current_span().add_event(
+        self._telemetry.span.add_event(
             semconv.EVENT_DEADLINE_MISSED,
             {
-                semconv.ATTR_LATENESS_MS: self._lateness_ms,
+                semconv.ATTR_LATENESS_MS: tick.lateness_ms,
                 semconv.ATTR_DEADLINE_POLICY: self.deadline_overrun_policy.value,
             },
         )
@@ -293,10 +283,10 @@ class InferenceRunnerBase(ABC):
             self._raise_pending = True
         return False
 
-    def _notify(self, result: TickResult) -> None:
+    def _notify(self, result: TickResult, world: WorldState | None) -> None:
         for observer in list(self.observers):
             try:
-                observer.on_tick(result, self._last_world)
+                observer.on_tick(result, world)
             except Exception as exc:  # an observer must never stop the robot
                 _log.error("tick observer failed; detaching it", observer=type(observer).__name__, error=str(exc))
                 self.observers.remove(observer)
@@ -308,7 +298,7 @@ class InferenceRunnerBase(ABC):
         if now - self._last_late_log_s >= 1.0:
             _log.warning(
                 "tick late",
-                lateness_ms=round(self._lateness_ms, 3),
+                lateness_ms=round(self._tick.lateness_ms, 3),
                 policy=self.deadline_overrun_policy.value,
                 late_ticks_since_last_report=self._late_since_log,
             )
@@ -351,7 +341,7 @@ class InferenceRunnerBase(ABC):
         telemetry = self._telemetry
         telemetry.record_ms(semconv.METRIC_TICK_DURATION, result.tick_ms, self._metric_attrs)
         telemetry.record_ms(semconv.METRIC_INFERENCE_DURATION, result.inference_ms, self._metric_attrs)
-        if self._stats.trace_id is None:
+        if self._stats.trace_id is None and span.get_span_context().is_valid:
             self._stats.trace_id = trace_id_hex(span)
         self.recent_ticks.append(result)
         if span.is_recording():

@@ -32,7 +32,6 @@ from openral_core import (
     SensorFrame,
     StopReason,
     SyncConfig,
-    TickResult,
     WithheldReason,
 )
 from openral_core.actions import action_problem
@@ -44,6 +43,7 @@ from openral_runner.realtime import apply_realtime
 from openral_runner.safety import NullSafetyClient, SafetyClient
 from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
 from openral_runner.thumbnails import ThumbnailPublisher
+from openral_runner.tick_context import TickContext
 from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
@@ -229,7 +229,7 @@ class HardwareRunner(InferenceRunnerBase):
 
     # -- the tick ------------------------------------------------------------------------
 
-    def _tick_impl(self, tick_idx: int) -> TickResult:
+    def _tick_impl(self, tick: TickContext) -> None:
         # Every phase span is recorded as data and exported by the telemetry worker
         # (``openral_observability.deferred``); those user code runs under (``skill.chunk_inference``
         # and ``safety.check``) are made current, so spans the skill or safety client opens, and
@@ -239,9 +239,12 @@ class HardwareRunner(InferenceRunnerBase):
         now = self._clock.now
         telemetry = self._telemetry
         start_span = telemetry.start_span
+        # Under the API's no-op provider no span can parent anything: nothing is made current.
+        attach = telemetry.span.get_span_context().is_valid
+        tick_idx = tick.tick_idx
         withheld: WithheldReason | None = None
-        stale: list[str] = []
-        violations: list[str] = []
+        stale = tick.stale_sensors
+        violations = tick.safety_violations
 
         t0 = now()
         for reader in self._free_readers:
@@ -268,7 +271,7 @@ class HardwareRunner(InferenceRunnerBase):
         telemetry.record(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t_read) * 1e3, self._hal_attrs)
 
         world = self.aggregator.snapshot(task=self.task, telemetry=telemetry)
-        self._last_world = world
+        tick.world = world
         # A required sensor counts as stale if its reader said so this tick, even when the world
         # state still holds an older frame within its age limit.
         if withheld is None and (world.stale_required or any(s in self._required_ids for s in stale)):
@@ -278,7 +281,7 @@ class HardwareRunner(InferenceRunnerBase):
         action: Action | None = None
         if withheld is None:
             span = start_span(semconv.SPAN_SKILL_INFERENCE)
-            token = context.attach(trace.set_span_in_context(span))
+            token = context.attach(trace.set_span_in_context(span)) if attach else None
             try:
                 output = self.skill.step(world)
                 problem = action_problem(output)
@@ -299,14 +302,15 @@ class HardwareRunner(InferenceRunnerBase):
                 _record_error(span, exc)
                 _log.warning("skill step failed", error=str(exc), tick=tick_idx)
             finally:
-                context.detach(token)
+                if token is not None:
+                    context.detach(token)
                 span.end()
 
         t3 = now()
         to_send: Action | None = None
         if action is not None:
             span = start_span(semconv.SPAN_SAFETY_CHECK)
-            token = context.attach(trace.set_span_in_context(span))
+            token = context.attach(trace.set_span_in_context(span)) if attach else None
             try:
                 replacement = self.safety_client.check_action(action)
                 to_send = action if replacement is None else replacement
@@ -327,7 +331,8 @@ class HardwareRunner(InferenceRunnerBase):
             except ROSEStopRequested as exc:
                 withheld = self._estop(exc)
             finally:
-                context.detach(token)
+                if token is not None:
+                    context.detach(token)
                 span.end()
 
         t4 = now()
@@ -348,32 +353,29 @@ class HardwareRunner(InferenceRunnerBase):
                 telemetry.record(semconv.METRIC_HAL_SEND_ACTION_DURATION, (now() - t4) * 1e3, self._hal_attrs)
             else:
                 withheld = WithheldReason.DEADLINE
-                trace.get_current_span().add_event(
+                telemetry.span.add_event(
                     semconv.EVENT_ACTION_DROPPED, {semconv.ATTR_WITHHELD_REASON: WithheldReason.DEADLINE.value}
                 )
         t5 = now()
 
-        return TickResult(
-            tick_idx=tick_idx,
-            sensors_ms=(t1 - t0) * 1e3,
-            world_state_ms=(t2 - t1) * 1e3,
-            inference_ms=(t3 - t2) * 1e3,
-            safety_ms=(t4 - t3) * 1e3,
-            hal_ms=(t5 - t4) * 1e3,
-            action_applied=applied,
-            withheld_reason=withheld,
-            safety_violations=violations,
-            stale_sensors=stale,
-            requested_action=action.first if action is not None else None,
-            sent_action=to_send.first if applied and to_send is not None else None,
-        )
+        tick.sensors_ms = (t1 - t0) * 1e3
+        tick.world_state_ms = (t2 - t1) * 1e3
+        tick.inference_ms = (t3 - t2) * 1e3
+        tick.safety_ms = (t4 - t3) * 1e3
+        tick.hal_ms = (t5 - t4) * 1e3
+        tick.action_applied = applied
+        tick.withheld = withheld
+        if action is not None:
+            tick.requested_action = action.first
+            if applied and to_send is not None:
+                tick.sent_action = to_send.first
 
     def _read_synced_set(self) -> bool:
         """Read the synchronised cameras as one set; ``False`` if no set within the skew was made."""
         assert self.sync is not None
         span = self._telemetry.start_span(semconv.SPAN_SENSORS_READ_SYNCED)
         try:
-            remaining_s = max(0.0, self._deadline_s - self._clock.now())
+            remaining_s = max(0.0, self._tick.deadline_s - self._clock.now())
             timeout_s = min(self.sync.timeout_ms / 1e3, remaining_s)
             frames = read_synced_set(
                 self._synced_readers,

@@ -9,11 +9,11 @@ from openral_core import (
     ROSConfigError,
     ROSDeadlineMissed,
     ROSRuntimeError,
-    TickResult,
     WithheldReason,
 )
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.testing import FakeClock
+from openral_runner.tick_context import TickContext
 
 RATE = 50.0
 PERIOD = 1.0 / RATE
@@ -29,9 +29,10 @@ class TimedRunner(InferenceRunnerBase):
         self.default_duration = 0.2 * PERIOD
         self.starts: list[float] = []
         self.sent: list[int] = []
-        self.withhold: dict[int, str] = {}
+        self.withhold: dict[int, WithheldReason] = {}
 
-    def _tick_impl(self, tick_idx: int) -> TickResult:
+    def _tick_impl(self, tick: TickContext) -> None:
+        tick_idx = tick.tick_idx
         self.starts.append(self.clock.now())
         self.clock.advance(self.durations.get(tick_idx, self.default_duration))
         reason = self.withhold.get(tick_idx)
@@ -40,9 +41,9 @@ class TimedRunner(InferenceRunnerBase):
                 self.sent.append(tick_idx)
             else:
                 reason = WithheldReason.DEADLINE
-        return TickResult.model_construct(
-            tick_idx=tick_idx, inference_ms=1.0, action_applied=reason is None, withheld_reason=reason
-        )
+        tick.inference_ms = 1.0
+        tick.action_applied = reason is None
+        tick.withheld = reason
 
 
 @pytest.fixture
