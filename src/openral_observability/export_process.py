@@ -41,9 +41,10 @@ import structlog
 from opentelemetry import trace
 
 from openral_observability.deferred import MetricSample
+from openral_observability.sdk_install import install
 from openral_observability.semconv import TRACER_NAME
-from openral_observability.setup import TelemetryConfig, install
 from openral_observability.span_pipeline import SdkSpanPipeline, SpanRecord
+from openral_observability.telemetry_config import TelemetryConfig
 from openral_observability.telemetry_worker import InProcessSink, TelemetrySink
 
 _log = structlog.get_logger(__name__)

@@ -78,6 +78,33 @@ def _trace_state(header: str) -> TraceState:
     return TraceState.from_header([header])
 
 
+SDK_RELEASES_READ: Final = ("1.45",)
+"""``opentelemetry-sdk`` releases (major.minor) whose tracer attributes and ``ReadableSpan`` constructor
+this module was checked against (the lock pins one; a test fails when it moves past these)."""
+
+
+@lru_cache(maxsize=1)
+def sdk_release_supported() -> bool:
+    """Whether the installed ``opentelemetry-sdk`` is one of :data:`SDK_RELEASES_READ` (warns once if not)."""
+    from importlib import metadata  # noqa: PLC0415
+
+    try:
+        release = ".".join(metadata.version("opentelemetry-sdk").split(".")[:2])
+    except metadata.PackageNotFoundError:
+        return False
+    if release in SDK_RELEASES_READ:
+        return True
+    import warnings  # noqa: PLC0415
+
+    warnings.warn(
+        f"opentelemetry-sdk {release} is newer or older than the releases openral's deferred tick spans were "
+        f"checked against ({', '.join(SDK_RELEASES_READ)}): recording ticks with live SDK spans instead",
+        RuntimeWarning,
+        stacklevel=2,
+    )
+    return False
+
+
 class SdkSpanPipeline:
     """An SDK tracer's id generator, sampler, resource, scope and span processors.
 
@@ -105,9 +132,15 @@ class SdkSpanPipeline:
 
     @classmethod
     def of(cls, tracer: Any) -> SdkSpanPipeline | None:
-        """The pipeline of ``tracer`` if it is an SDK tracer, else ``None`` (API no-op or another implementation)."""
+        """The pipeline of ``tracer`` if it is an SDK tracer of a release whose internals were checked.
+
+        ``None`` for the API's no-op tracer, another implementation, or an SDK release outside
+        :data:`SDK_RELEASES_READ` (then the caller records live API spans: slower, never wrong).
+        """
         parts = ("sampler", "id_generator", "span_processor", "resource", "instrumentation_info")
         if not all(hasattr(tracer, part) for part in parts):
+            return None
+        if not sdk_release_supported():
             return None
         return cls(tracer)
 
