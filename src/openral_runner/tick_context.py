@@ -46,28 +46,30 @@ class TickContext:
             self.withheld = reason
 
     def result(self, *, tick_ms: float, trace_context: str | None) -> TickResult:
-        """The tick's ``TickResult``."""
+        """The tick's ``TickResult`` (every field set here, so it is built without validation)."""
         return TickResult.trusted(
-            tick_idx=self.tick_idx,
-            start_ns=int(self.start_s * 1e9),
-            tick_ms=tick_ms,
-            sensors_ms=self.sensors_ms,
-            world_state_ms=self.world_state_ms,
-            inference_ms=self.inference_ms,
-            safety_ms=self.safety_ms,
-            hal_ms=self.hal_ms,
-            action_applied=self.action_applied,
-            withheld_reason=self.withheld,
-            safety_violations=self.safety_violations,
-            stale_sensors=self.stale_sensors,
-            deadline_missed=self.lateness_ms > 0.0,
-            lateness_ms=self.lateness_ms,
-            requested_action=self.requested_action,
-            sent_action=self.sent_action,
-            trace_context=trace_context,
-            step_idx=self.step_idx,
-            episode_idx=self.episode_idx,
-            reward=self.reward,
-            terminated=self.terminated,
-            truncated=self.truncated,
+            {
+                "tick_idx": self.tick_idx,
+                "start_ns": int(self.start_s * 1e9),
+                "tick_ms": tick_ms,
+                "sensors_ms": self.sensors_ms,
+                "world_state_ms": self.world_state_ms,
+                "inference_ms": self.inference_ms,
+                "safety_ms": self.safety_ms,
+                "hal_ms": self.hal_ms,
+                "action_applied": self.action_applied,
+                "withheld_reason": self.withheld,
+                "safety_violations": self.safety_violations,
+                "stale_sensors": self.stale_sensors,
+                "deadline_missed": self.lateness_ms > 0.0,
+                "lateness_ms": self.lateness_ms,
+                "requested_action": self.requested_action,
+                "sent_action": self.sent_action,
+                "trace_context": trace_context,
+                "step_idx": self.step_idx,
+                "episode_idx": self.episode_idx,
+                "reward": self.reward,
+                "terminated": self.terminated,
+                "truncated": self.truncated,
+            }
         )
