@@ -229,3 +229,14 @@ def test_stop_reasons_map_to_exit_codes(reason: str, code: int) -> None:
     from openral_core import StopReason  # noqa: PLC0415
 
     assert _exit_code(StopReason(reason)) == code
+
+
+def test_validate_refuses_a_missing_video_file_that_deploy_would_fail_on(tmp_path: Path) -> None:
+    pytest.importorskip("cv2", reason="needs the 'opencv' extra")
+    text = NULL_DEPLOYMENT + (
+        "sensors:\n  - {sensor_id: front, backend: opencv_thread, backend_params: {device: clips/missing.mp4}}\n"
+    )
+    out = CliRunner().invoke(cli, ["validate", str(write(tmp_path, text))])
+    assert out.exit_code == 2
+    assert "sensors[front].backend_params.device: video file not found" in out.output
+    assert str(tmp_path / "clips" / "missing.mp4") in out.output, "relative to the deployment's folder"
