@@ -104,6 +104,8 @@ class InferenceRunnerBase(ABC):
         self._tick_idx = 0
         self._stop_reason: StopReason | None = None
         self._tick = TickContext(0, 0.0, 0.0)
+        self._spans_current = False
+        """Whether this tick's spans are made current (not under the API's no-op provider)."""
         self._raise_pending = False
         self._metric_attrs = {semconv.ATTR_SKILL_ID: skill_id or runner_name}
         # Each tick's spans and metric samples are recorded as data and exported by a worker
@@ -229,7 +231,8 @@ class InferenceRunnerBase(ABC):
         worker.busy = True
         # Current for whatever the phases start (a skill's own spans); under the API's no-op
         # provider there is nothing to parent, and the attach is skipped.
-        token = context.attach(trace.set_span_in_context(span)) if span.get_span_context().is_valid else None
+        self._spans_current = span.get_span_context().is_valid
+        token = context.attach(trace.set_span_in_context(span)) if self._spans_current else None
         tick_attributes: dict[str, Any] | None = None
         try:
             self._tick_impl(tick)

@@ -239,8 +239,7 @@ class HardwareRunner(InferenceRunnerBase):
         now = self._clock.now
         telemetry = self._telemetry
         start_span = telemetry.start_span
-        # Under the API's no-op provider no span can parent anything: nothing is made current.
-        attach = telemetry.span.get_span_context().is_valid
+        attach = self._spans_current  # decided once per tick by the base
         tick_idx = tick.tick_idx
         withheld: WithheldReason | None = None
         stale = tick.stale_sensors

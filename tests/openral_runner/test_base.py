@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
 
 from openral_core import (
@@ -46,6 +48,17 @@ class TimedRunner(InferenceRunnerBase):
         tick.withheld = reason
 
 
+_made: list[TimedRunner] = []
+
+
+@pytest.fixture(autouse=True)
+def _deactivate_runners() -> Iterator[None]:
+    """Deactivate every runner a test made: its telemetry worker flushes here, not into a later test."""
+    yield
+    while _made:
+        _made.pop().deactivate()
+
+
 @pytest.fixture
 def clock() -> FakeClock:
     return FakeClock(start_s=1000.0)
@@ -54,6 +67,7 @@ def clock() -> FakeClock:
 def make(clock: FakeClock, durations: dict[int, float] | None = None, **kwargs: object) -> TimedRunner:
     runner = TimedRunner(clock, durations, **kwargs)
     runner.activate()
+    _made.append(runner)
     return runner
 
 

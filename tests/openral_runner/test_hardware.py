@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 
@@ -60,6 +62,17 @@ def rows(*values: float) -> list[list[float]]:
     return [[v, 0.0, 0.0] for v in values]
 
 
+_built: list[HardwareRunner] = []
+
+
+@pytest.fixture(autouse=True)
+def _deactivate_runners() -> Iterator[None]:
+    """Deactivate every runner a test built: its telemetry worker flushes here, not into a later test."""
+    yield
+    while _built:
+        _built.pop().deactivate()
+
+
 def build(
     clock: FakeClock,
     *,
@@ -86,6 +99,7 @@ def build(
         clock=clock,
         **kwargs,  # type: ignore[arg-type]
     )
+    _built.append(runner)
     return runner, hal, skill
 
 
