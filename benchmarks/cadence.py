@@ -7,7 +7,15 @@ only difference is scheduling and the runner's own bookkeeping. Reported per loo
 * achieved rate and its error against the target,
 * tick-start jitter p50/p99/max in µs (start minus the slot the loop intended),
 * missed slots (the runner skips slots after an overrun; the LeRobot loop just drifts),
-* overhead per tick in µs: loop time per tick minus the time spent inside the components.
+* overhead per tick in µs: loop time per tick minus the time spent inside the components,
+* busy time per tick in µs (slot start to the action sent, components included) and the
+  components' share of it.
+
+Read the overhead with the busy time beside it. At 30 and 100 Hz the loop sleeps for most of
+each period and wakes with cold caches: whichever code runs first after the wake pays tens of
+µs to refill them (``benchmarks/wake_penalty.py`` shows it). In the runner its own code runs
+first, so that cost lands in its overhead; in the LeRobot-style loop the HAL read runs first and
+the cost lands in the components. Same components, same work: compare the busy times.
 
 Run:  uv run python benchmarks/cadence.py [--seconds 5] [--rates 30,100,1000]
 """
@@ -42,6 +50,8 @@ class Figures:
     missed_slots: int
     overhead_us: float
     overhead_p50_us: float
+    busy_p50_us: float
+    components_p50_us: float
 
     def line(self) -> str:
         error_pct = (self.achieved_hz - self.rate_hz) / self.rate_hz * 100
@@ -49,8 +59,8 @@ class Figures:
             f"{self.loop:<9} {self.rate_hz:>6g} Hz  n={self.n_ticks:<6} achieved {self.achieved_hz:10.4f} Hz "
             f"({error_pct:+.4f}%)  jitter µs p50 {self.jitter_p50_us:8.1f} p99 {self.jitter_p99_us:8.1f} "
             f"max {self.jitter_max_us:9.1f}  missed {self.missed_slots:>5}  "
-            f"overhead µs/tick mean {self.overhead_us:6.2f} "
-            f"p50 {self.overhead_p50_us:6.2f}"
+            f"overhead µs/tick mean {self.overhead_us:6.2f} p50 {self.overhead_p50_us:6.2f}  "
+            f"busy p50 {self.busy_p50_us:6.1f} (components {self.components_p50_us:6.1f})"
         )
 
 
@@ -106,6 +116,8 @@ def run_openral(rate_hz: float, seconds: float) -> Figures:
         missed_slots=result.missed_slots,
         overhead_us=(tick_total_s - timer.total_s) / result.n_ticks * 1e6,
         overhead_p50_us=float(np.median(per_tick)) * 1e6,
+        busy_p50_us=float(np.median([t.tick_ms for t in recent])) * 1e3,
+        components_p50_us=float(np.median(timer.per_tick[-len(recent) :])) * 1e6,
     )
 
 
@@ -150,6 +162,8 @@ def run_lerobot_style(rate_hz: float, seconds: float) -> Figures:
         missed_slots=0,
         overhead_us=(busy_s - timer.total_s) / n * 1e6,
         overhead_p50_us=float(np.median(busy - np.array(timer.per_tick))) * 1e6,
+        busy_p50_us=float(np.median(busy)) * 1e6,
+        components_p50_us=float(np.median(timer.per_tick)) * 1e6,
     )
 
 
@@ -168,6 +182,8 @@ def main() -> None:
         print(
             f"          ratio lerobot/openral: jitter p99 {theirs.jitter_p99_us / max(ours.jitter_p99_us, 1e-9):.1f}x, "
             f"rate error {abs(theirs.achieved_hz - rate) / max(abs(ours.achieved_hz - rate), 1e-9):.1f}x; "
+            f"openral/lerobot: overhead p50 {ours.overhead_p50_us / max(theirs.overhead_p50_us, 1e-9):.2f}x, "
+            f"busy p50 {ours.busy_p50_us / max(theirs.busy_p50_us, 1e-9):.2f}x; "
             f"openral missed slots {missed_pct:.3f}%"
         )
     print(machine_line())

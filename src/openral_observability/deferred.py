@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from typing import Any, Final
 
-from opentelemetry.trace import Span, SpanContext, Status, StatusCode
+from opentelemetry.trace import INVALID_SPAN, Span, SpanContext, Status, StatusCode
 from opentelemetry.util.types import Attributes
 
 from openral_observability.metrics import histogram
@@ -189,7 +189,7 @@ class TickTelemetry:
         spans: The list deferred spans append themselves to when they end.
     """
 
-    __slots__ = ("_start_span", "defer_metrics", "samples", "span", "spans")
+    __slots__ = ("_start_span", "defer_metrics", "parents_spans", "samples", "span", "spans")
 
     def __init__(
         self,
@@ -201,6 +201,8 @@ class TickTelemetry:
     ) -> None:
         self.span = span
         self.defer_metrics = defer_metrics
+        self.parents_spans = span.get_span_context().is_valid
+        """Whether spans user code starts during the tick should nest under it (nothing to parent otherwise)."""
         self._start_span = start_span
         self.spans: list[DeferredSpan] = [] if spans is None else spans
         self.samples: list[MetricSample] = []
@@ -209,6 +211,12 @@ class TickTelemetry:
         """A child span of the tick, or the tick's own span when the tick is not recorded."""
         start = self._start_span
         return self.span if start is None else start(name, attributes)
+
+    def restart(self) -> None:
+        """Move the tick span's start to now, for a tick prepared ahead of its slot."""
+        span = self.span
+        if isinstance(span, DeferredSpan):
+            span.start_ns = _time_ns()
 
     def finish(self, attributes: dict[str, Any] | None = None) -> None:
         """End the tick span with its final ``attributes`` (a dict the span may keep)."""
@@ -236,3 +244,22 @@ class TickTelemetry:
     def pending(self) -> bool:
         """Whether the worker has anything to do for this tick."""
         return bool(self.spans or self.samples)
+
+
+class QuietTickTelemetry(TickTelemetry):
+    """The telemetry of a tick when nothing is installed to record it: every call returns at once.
+
+    With the API's no-op tracer and meter providers the tick span is the invalid span and each
+    metric sample would go to a no-op instrument; skipping the calls keeps the tick path short.
+    """
+
+    __slots__ = ()
+
+    def __init__(self) -> None:
+        super().__init__(INVALID_SPAN, defer_metrics=False)
+
+    def record(self, name: str, value: float, attributes: Attributes = None) -> None:
+        """Nothing records metrics: the sample is dropped."""
+
+    def record_ms(self, name: str, value_ms: float, attributes: Attributes = None) -> None:
+        """Nothing records metrics: the sample is dropped."""

@@ -9,7 +9,7 @@ from opentelemetry.trace import NonRecordingSpan, Span, SpanContext, TraceFlags
 from opentelemetry.util.types import Attributes
 
 from openral_observability import telemetry_worker
-from openral_observability.deferred import DeferredSpan, TickTelemetry
+from openral_observability.deferred import DeferredSpan, QuietTickTelemetry, TickTelemetry
 from openral_observability.semconv import SPAN_TICK, TRACER_NAME
 from openral_observability.span_pipeline import SdkSpanPipeline
 from openral_observability.telemetry_worker import InProcessSink, TelemetryWorker
@@ -22,12 +22,18 @@ def meter_provider_records() -> bool:
     return not type(metrics.get_meter_provider()).__module__.startswith("opentelemetry.metrics")
 
 
+def tracer_provider_records(provider: trace.TracerProvider) -> bool:
+    """Whether ``provider`` can record spans (anything but the API's proxy or no-op provider)."""
+    return not type(provider).__module__.startswith("opentelemetry.trace")
+
+
 class TickRecorder:
     """How a runner records its ticks: deferred spans under an SDK tracer, the API's spans otherwise.
 
     What is installed is looked at in :meth:`activate`, once per activation (providers are set
     once per process, usually before a runner activates; the API's proxy tracer keeps working
-    for a provider installed later, live). :meth:`begin` then makes each tick's
+    for a provider installed later, live; with nothing installed at activation the ticks record
+    nothing until the next activation). :meth:`begin` then makes each tick's
     :class:`TickTelemetry`, and :meth:`end` hands it to the worker.
 
     Args:
@@ -42,11 +48,20 @@ class TickRecorder:
         self.defer_metrics = False
         self.worker = TelemetryWorker()
         self._direct = TickTelemetry(trace.INVALID_SPAN, defer_metrics=False)
+        self._quiet: QuietTickTelemetry | None = None
 
     @property
     def defers_spans(self) -> bool:
         """Whether ticks are recorded as deferred spans (an SDK tracer was found at activation)."""
         return self._pipeline is not None
+
+    @property
+    def begins_ahead(self) -> bool:
+        """Whether :meth:`begin` may run before the tick's slot (``restart`` then moves its start).
+
+        True when ticks are deferred or not recorded at all; a live API span keeps the start it was given.
+        """
+        return self._quiet is not None or self._pipeline is not None
 
     def activate(self) -> None:
         """Look at the installed providers and start the worker."""
@@ -57,6 +72,8 @@ class TickRecorder:
         if offload is not None:
             self.defer_metrics = True
         self.worker.sink = offload or InProcessSink(self._pipeline)
+        records = offload is not None or self.defer_metrics or tracer_provider_records(provider)
+        self._quiet = None if records else QuietTickTelemetry()
         self.worker.start()
 
     def deactivate(self, timeout_s: float = 10.0) -> None:
@@ -65,6 +82,8 @@ class TickRecorder:
 
     def begin(self) -> TickTelemetry:
         """Start a tick: its span (not yet current) and the batch its phases record into."""
+        if self._quiet is not None:
+            return self._quiet
         pipeline = self._pipeline
         if pipeline is None:
             return self._begin_with_api()

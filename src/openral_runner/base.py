@@ -214,24 +214,45 @@ class InferenceRunnerBase(ABC):
             ROSDeadlineMissed: Under the ``raise`` policy, when the tick was late.
         """
         self._require_active()
-        start = self._clock.now()
-        return self._run_tick(start, start + self.period_s)
+        tick = self._next_tick(0.0, 0.0)
+        tick.start_s = self._clock.now()
+        tick.deadline_s = tick.start_s + self.period_s
+        return self._run_tick(tick)
 
-    def _run_tick(self, start_s: float, deadline_s: float) -> TickResult:
-        idx = self._tick_idx
+    def _next_tick(self, start_s: float, deadline_s: float) -> TickContext:
+        """The context of the next tick, made ahead of its slot (in the idle time before it)."""
+        tick = TickContext(self._tick_idx, start_s, deadline_s)
         self._tick_idx += 1
-        tick = TickContext(idx, start_s, deadline_s)
+        return tick
+
+    def _run_tick(self, tick: TickContext, *, slot_start_s: float | None = None) -> TickResult:
+        """Run the tick ``tick`` describes; its result is built once the tick is over.
+
+        With ``slot_start_s`` the tick is prepared now, in the idle time before its slot, and
+        starts when the slot does (``tick.start_s`` is set then); without it, it starts at
+        ``tick.start_s``.
+        """
+        recorder = self._recorder
+        telemetry = recorder.begin() if slot_start_s is not None and recorder.begins_ahead else None
         self._tick = tick
         self._raise_pending = False
-        recorder = self._recorder
-        telemetry = recorder.begin()
-        self._telemetry = telemetry
-        span = telemetry.span
+        if slot_start_s is not None:
+            self._clock.sleep_until(slot_start_s)
+            tick.start_s = self._clock.now()
+        # From here to the action, only the tick: its bookkeeping waits until it is over.
+        if telemetry is None:
+            telemetry = recorder.begin()
+        else:
+            telemetry.restart()
         worker = recorder.worker
         worker.busy = True
+        idx = tick.tick_idx
+        start_s = tick.start_s
+        self._telemetry = telemetry
+        span = telemetry.span
         # Current for whatever the phases start (a skill's own spans); under the API's no-op
         # provider there is nothing to parent, and the attach is skipped.
-        self._spans_current = span.get_span_context().is_valid
+        self._spans_current = telemetry.parents_spans
         token = context.attach(trace.set_span_in_context(span)) if self._spans_current else None
         tick_attributes: dict[str, Any] | None = None
         try:
@@ -398,22 +419,19 @@ class InferenceRunnerBase(ABC):
             if end_limit is not None and slot_start >= end_limit:
                 stop_reason = StopReason.DURATION
                 break
-            clock.sleep_until(slot_start)
-            start = clock.now()
-            if n == 0:
-                self._stats.first_start_s = start
-            self._stats.last_start_s = start
-            self._stats.jitter_us.add((start - slot_start) * 1e6)
+            tick = self._next_tick(slot_start, slot_start + period)
             try:
-                self._run_tick(start, slot_start + period)
+                self._run_tick(tick, slot_start_s=slot_start)
             except ROSDeadlineMissed as exc:
                 n += 1
                 self._stats.run_t_end = clock.now()
+                self._count_start(tick.start_s, slot_start, first=n == 1)
                 exc.run_result = self._build_run_result(n, StopReason.DEADLINE)
                 self._recorder.worker.flush()
                 raise
             n += 1
             end = clock.now()
+            self._count_start(tick.start_s, slot_start, first=n == 1)
             self._stats.run_t_end = end
             if self._should_terminate():
                 stop_reason = StopReason.TERMINATED
@@ -429,6 +447,14 @@ class InferenceRunnerBase(ABC):
             if collector is not None:
                 collector.collect_if_due(t0 + slot * period - clock.now())
         return n, stop_reason
+
+    def _count_start(self, start: float, slot_start: float, *, first: bool) -> None:
+        """Record when a tick started against its slot (after the tick, off its critical path)."""
+        stats = self._stats
+        if first:
+            stats.first_start_s = start
+        stats.last_start_s = start
+        stats.jitter_us.add((start - slot_start) * 1e6)
 
     # -- results -------------------------------------------------------------------------
 

@@ -139,3 +139,39 @@ def test_without_an_sdk_tracer_ticks_use_the_apis_no_op_spans() -> None:
         assert not first.spans
     finally:
         recorder.deactivate()
+
+
+QUIET_RUN = """
+import openral_observability.deferred as deferred
+from openral_hal.testing import RecordingHAL
+from openral_rskill.testing import ScriptedSkill
+from openral_runner.hardware import HardwareRunner
+from openral_world_state import WorldStateAggregator
+
+def no_instrument(name, unit="ms"):
+    raise AssertionError(f"a metric sample reached an instrument with nothing installed: {name}")
+
+deferred.histogram = no_instrument
+skill = ScriptedSkill(["j0"])
+skill.configure()
+skill.activate()
+runner = HardwareRunner(hal=RecordingHAL(["j0"]), skill=skill, aggregator=WorldStateAggregator(), rate_hz=500.0)
+runner.activate()
+result = runner.run(50)
+runner.deactivate()
+print(type(runner._recorder.begin()).__name__, result.n_ticks, result.withheld_actions)
+"""
+
+
+def test_with_nothing_installed_a_tick_records_nothing() -> None:
+    """No SDK tracer or meter at activation: ticks skip every telemetry call, and the loop still runs."""
+    import os  # noqa: PLC0415
+    import subprocess  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OTEL_")}
+    proc = subprocess.run(
+        [sys.executable, "-c", QUIET_RUN], env=env, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["QuietTickTelemetry", "50", "0"]

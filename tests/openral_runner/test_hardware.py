@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 
 import numpy as np
@@ -22,6 +23,7 @@ from openral_core import (
 )
 from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
+from openral_runner.clock import SystemClock
 from openral_runner.hardware import HardwareRunner
 from openral_runner.safety import SafetyClient
 from openral_runner.testing import FakeClock, ScriptedReader
@@ -574,6 +576,23 @@ def test_invalid_action_is_traced_on_the_inference_span(telemetry) -> None:
     (span,) = telemetry.spans("skill.chunk_inference")
     assert [e.name for e in span.events] == ["openral.event.invalid_action"]
     assert "dict, not an Action" in span.events[0].attributes["exception.message"]
+
+
+def test_a_tick_prepared_before_its_slot_is_traced_from_the_slot(telemetry) -> None:
+    """Ticks are prepared in the idle time before their slot; their span still starts when the slot does."""
+    runner, _, _ = build(SystemClock())
+    runner.activate()
+    runner.run(4)
+    runner.deactivate()
+    runner.flush_telemetry()
+    spans = sorted(telemetry.spans("rskill.tick"), key=lambda s: s.start_time)
+    assert len(spans) == 4
+    for span, tick in zip(spans, runner.recent_ticks, strict=True):
+        span_ms = (span.end_time - span.start_time) / 1e6
+        # Without the restart the span of each later tick would also cover the ~33 ms wait for its slot.
+        assert span_ms - tick.tick_ms < PERIOD * 1e3 / 2
+    gaps = [(b.start_time - a.end_time) / 1e6 for a, b in itertools.pairwise(spans)]
+    assert min(gaps) > PERIOD * 1e3 / 2
 
 
 class SeedProtocolReader:
