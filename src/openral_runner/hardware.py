@@ -106,10 +106,8 @@ class HardwareRunner(InferenceRunnerBase):
             with_read_synced(r, clock_ns=clock_ns) for r in self.sensor_readers if r.sensor_id in synced
         ]
         self._free_readers = [r for r in self.sensor_readers if r.sensor_id not in synced]
-        self._sync_required = any(aggregator.is_required(sensor_id) for sensor_id in synced)
         self._required_ids = frozenset(r.sensor_id for r in self.sensor_readers if aggregator.is_required(r.sensor_id))
         self._opened: ExitStack | None = None
-        self._sensor_errors: set[str] = set()
         self._episode_idx = -1
         self._episode_open = False
         self._hal_attrs = {
@@ -247,13 +245,9 @@ class HardwareRunner(InferenceRunnerBase):
 
         t0 = now()
         for reader in self._free_readers:
-            stale_id = self._read_sensor(reader)
-            if stale_id is not None:
-                stale.append(stale_id)
-        if self._synced_readers and not self._read_synced_set():
-            stale.extend(r.sensor_id for r in self._synced_readers)
-            if self._sync_required:
-                withheld = WithheldReason.STALE_SENSOR
+            self._read_sensor(reader)
+        if self._synced_readers:
+            self._read_synced_set()
         t_read = now()
         span = start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
         try:
@@ -271,9 +265,12 @@ class HardwareRunner(InferenceRunnerBase):
 
         world = self.aggregator.snapshot(task=self.task, telemetry=telemetry)
         tick.world = world
-        # A required sensor counts as stale if its reader said so this tick, even when the world
-        # state still holds an older frame within its age limit.
-        if withheld is None and (world.stale_required or any(s in self._required_ids for s in stale)):
+        # The world state's diagnostics are the one verdict on every component (a reader's own
+        # "stale" included: it was marked on the aggregator).
+        if self.sensor_readers:
+            diagnostics = world.diagnostics
+            stale.extend(r.sensor_id for r in self.sensor_readers if diagnostics[r.sensor_id].stale)
+        if withheld is None and world.stale_required:
             withheld = WithheldReason.STALE_SENSOR
 
         t2 = now()
@@ -369,8 +366,8 @@ class HardwareRunner(InferenceRunnerBase):
             if applied and to_send is not None:
                 tick.sent_action = to_send.first
 
-    def _read_synced_set(self) -> bool:
-        """Read the synchronised cameras as one set; ``False`` if no set within the skew was made."""
+    def _read_synced_set(self) -> None:
+        """Read the synchronised cameras as one set; without a set within the skew, each is marked stale."""
         assert self.sync is not None
         span = self._telemetry.start_span(semconv.SPAN_SENSORS_READ_SYNCED)
         try:
@@ -388,8 +385,8 @@ class HardwareRunner(InferenceRunnerBase):
                 attrs[semconv.ATTR_SYNC_SKEW_MS] = exc.skew_ms
             span.add_event(semconv.EVENT_SENSOR_SYNC_FAILED, attrs)
             for reader in self._synced_readers:
+                self.aggregator.mark_stale(reader.sensor_id)
                 metrics.add(semconv.METRIC_SENSORS_STALE_READS, 1, {semconv.ATTR_SENSOR_ID: reader.sensor_id})
-            return False
         else:
             stamps = [frame.stamp_ns for frame in frames.values()]
             if span.is_recording():
@@ -400,38 +397,31 @@ class HardwareRunner(InferenceRunnerBase):
                 self._telemetry.record_ms(
                     semconv.METRIC_SENSORS_AGE, frame.age_ms(now_ns), self._sensor_attrs[frame.sensor_id]
                 )
-            return True
         finally:
             span.end()
 
     def _accept_frame(self, frame: SensorFrame) -> None:
-        self.aggregator.update_frame(frame)
-        if frame.sensor_id in self._sensor_errors:
-            self._sensor_errors.discard(frame.sensor_id)
-            self.aggregator.clear_error(frame.sensor_id)
+        self.aggregator.update_frame(frame)  # a frame also clears the sensor's error
         if self.thumbnails is not None:
             self.thumbnails.offer(frame)
 
-    def _read_sensor(self, reader: SensorReader) -> str | None:
-        """Move one reader's latest frame into the world state; returns its id when stale."""
+    def _read_sensor(self, reader: SensorReader) -> None:
+        """Move one reader's latest frame into the world state, or its verdict (stale, failed) onto it."""
         span = self._telemetry.start_span(semconv.SPAN_SENSORS_READ)
         try:
             frame = reader.read_latest()
         except ROSPerceptionStale as exc:
+            self.aggregator.mark_stale(reader.sensor_id, exc.age_ms)
             self._on_stale(span, exc)
-            return reader.sensor_id
         except ROSError as exc:
-            self._sensor_errors.add(reader.sensor_id)
             self.aggregator.set_error(reader.sensor_id, str(exc))
             _record_error(span, exc)
-            return None
         else:
             self._accept_frame(frame)
             age_ms = frame.age_ms(self._clock.now_ns())
             self._telemetry.record_ms(semconv.METRIC_SENSORS_AGE, age_ms, self._sensor_attrs[reader.sensor_id])
             if span.is_recording():
                 span.set_attributes({semconv.ATTR_SENSOR_ID: reader.sensor_id, semconv.ATTR_SENSOR_AGE_MS: age_ms})
-            return None
         finally:
             span.end()
 

@@ -51,7 +51,10 @@ class WorldStateAggregator:
     ``JointState.stamp_ns``) to ``clock()``, never from when it arrived here: a sample is
     stale when it is missing, older than its ``max_age_ms``, or stamped further than
     ``max_age_ms`` in the future (a backend stamping on another clock is never "fresh forever").
-    A component with an error set (:meth:`set_error`) is unhealthy until :meth:`clear_error`.
+    A component with an error set (:meth:`set_error`) is unhealthy until :meth:`clear_error` or,
+    for a sensor, until its next frame arrives. A sensor whose reader judged its latest frame stale
+    (:meth:`mark_stale`) is stale in the next snapshot whatever frame is held: the world state's
+    diagnostics are the one verdict on every component.
 
     Telemetry, emitted inside the ``world_state.snapshot`` span, only on transitions:
 
@@ -107,6 +110,7 @@ class WorldStateAggregator:
         self._joint_state: JointState | None = None
         self._frames: dict[str, SensorFrame] = {}
         self._errors: dict[str, str] = {}
+        self._marked_stale: dict[str, float | None] = {}
 
     def is_required(self, component: str) -> bool:
         """Whether a stale ``component`` withholds the tick's action."""
@@ -140,6 +144,19 @@ class WorldStateAggregator:
             held = self._frames.get(sensor_id)
             if held is None or frame.stamp_ns >= held.stamp_ns:
                 self._frames[sensor_id] = frame
+            if self._errors:
+                self._errors.pop(sensor_id, None)
+
+    def mark_stale(self, sensor_id: str, age_ms: float | None = None) -> None:
+        """Have the next snapshot report ``sensor_id`` stale (its reader said so), with ``age_ms`` when known.
+
+        Raises:
+            ROSConfigError: ``sensor_id`` is not a declared sensor.
+        """
+        if sensor_id not in self._sensor_ids:
+            raise self._unknown(sensor_id, declared=sorted(self._sensor_ids), what="sensor")
+        with self._lock:
+            self._marked_stale[sensor_id] = age_ms
 
     def set_error(self, component: str, message: str) -> None:
         """Mark ``component`` unhealthy with ``message`` until :meth:`clear_error`.
@@ -192,6 +209,9 @@ class WorldStateAggregator:
                     joint_state = self._joint_state
                     frames = dict(self._frames)
                     errors = dict(self._errors) if self._errors else None
+                    marked = self._marked_stale
+                    if marked:
+                        self._marked_stale = {}
                     now_ns = self._clock()
                 diagnostics: dict[str, ComponentDiagnostics] = {}
                 for component in self._components:
@@ -201,7 +221,7 @@ class WorldStateAggregator:
                         frame = frames.get(component.name)
                         stamp_ns = None if frame is None else frame.stamp_ns
                     diagnostics[component.name] = self._diagnose(
-                        component, stamp_ns, now_ns, errors, span, telemetry=telemetry
+                        component, stamp_ns, now_ns, errors, span, telemetry=telemetry, marked=marked
                     )
                 # Plain (validated) construction: pydantic-core checks these flat fields faster than
                 # ``model_construct`` builds them, and nested model instances pass through unvalidated and uncopied.
@@ -224,6 +244,7 @@ class WorldStateAggregator:
         span: Any,
         *,
         telemetry: TickTelemetry | None,
+        marked: dict[str, float | None],
     ) -> ComponentDiagnostics:
         limit = component.max_age_ms
         if stamp_ns is None:
@@ -236,6 +257,9 @@ class WorldStateAggregator:
                 metrics.record_histogram_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
             else:
                 telemetry.record_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
+        if marked and component.name in marked:
+            stale = True
+            age_ms = marked[component.name] if marked[component.name] is not None else age_ms
         error = errors.get(component.name) if errors else None
 
         if stale and not component.stale_latched:

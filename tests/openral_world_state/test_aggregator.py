@@ -537,3 +537,53 @@ def test_concurrent_updates_never_tear_a_snapshot() -> None:
     final = snapshots[-1]
     assert final.image_frames is not None
     assert {s: f.seq for s, f in final.image_frames.items()} == dict.fromkeys(sensors, n - 1)
+
+
+def test_a_readers_stale_verdict_holds_for_one_snapshot_over_a_frame_within_its_age() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    agg.update_joint_state(_joints(T0))
+    agg.update_frame(_frame("front", T0))
+    clock.advance_ms(10)
+    agg.mark_stale("front", age_ms=75.0)
+    marked = agg.snapshot()
+    assert marked.diagnostics["front"].stale
+    assert marked.diagnostics["front"].age_ms == 75.0
+    assert marked.stale_required == ["front"]
+    assert marked.image_frames is not None
+    assert "front" in marked.image_frames
+    after = agg.snapshot()
+    assert not after.diagnostics["front"].stale
+    assert after.diagnostics["front"].age_ms == pytest.approx(10.0)
+
+
+def test_a_stale_mark_without_an_age_keeps_the_measured_one() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    agg.update_frame(_frame("wrist", T0))
+    clock.advance_ms(20)
+    agg.mark_stale("wrist")
+    diagnosis = agg.snapshot().diagnostics["wrist"]
+    assert diagnosis.stale
+    assert diagnosis.age_ms == pytest.approx(20.0)
+
+
+def test_marking_an_undeclared_sensor_stale_names_the_declared_ones() -> None:
+    agg = _aggregator(FakeClock())
+    with pytest.raises(ROSConfigError, match="front, wrist"):
+        agg.mark_stale("rear")
+    with pytest.raises(ROSConfigError):
+        agg.mark_stale(JOINT_STATE_COMPONENT)
+
+
+def test_a_sensors_next_frame_clears_its_error() -> None:
+    clock = FakeClock()
+    agg = _aggregator(clock)
+    agg.set_error("wrist", "USB unplugged")
+    agg.set_error(JOINT_STATE_COMPONENT, "bus error")
+    assert agg.snapshot().diagnostics["wrist"].error == "USB unplugged"
+    agg.update_frame(_frame("wrist", T0))
+    ws = agg.snapshot()
+    assert ws.diagnostics["wrist"].error is None
+    assert ws.diagnostics["wrist"].healthy
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].error == "bus error"  # only the sensor's own frame clears it
