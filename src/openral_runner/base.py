@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Final
 
@@ -309,10 +310,15 @@ class InferenceRunnerBase(ABC):
 
     def _notify(self, result: TickResult, world: WorldState | None) -> None:
         for observer in list(self.observers):
-            try:
-                observer.on_tick(result, world)
-            except Exception as exc:  # an observer must never stop the robot
-                _log.error("tick observer failed; detaching it", observer=type(observer).__name__, error=str(exc))
+            self._tell(observer, observer.on_tick, result, world)
+
+    def _tell(self, observer: TickObserver, call: Callable[..., None], *args: Any, **kwargs: Any) -> None:
+        """Call one observer; one that raises is logged and detached (it must never stop the robot)."""
+        try:
+            call(*args, **kwargs)
+        except Exception as exc:
+            _log.error("tick observer failed; detaching it", observer=type(observer).__name__, error=str(exc))
+            if observer in self.observers:
                 self.observers.remove(observer)
 
     def _log_late(self) -> None:

@@ -39,6 +39,7 @@ from openral_hal.protocol import HAL
 from openral_observability import metrics, semconv, tracer
 from openral_rskill.base import RSkillBase
 from openral_runner.base import InferenceRunnerBase
+from openral_runner.observer import TickObserver
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import NullSafetyClient, SafetyClient
 from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
@@ -69,6 +70,8 @@ class HardwareRunner(InferenceRunnerBase):
         sync: Cameras read as one set with bounded capture skew each tick.
         thumbnail_hz: Rate of the small JPEG thumbnails of each camera for dashboards, encoded
             off the tick thread; 0 disables them (as it does without cameras).
+        recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
+            observer, hears every ``episode_start``/``episode_end`` and is closed with the runner.
         **base_kwargs: ``InferenceRunnerBase`` options (rate, policy, clock, ...).
     """
 
@@ -84,6 +87,7 @@ class HardwareRunner(InferenceRunnerBase):
         realtime: RealtimeConfig | None = None,
         sync: SyncConfig | None = None,
         thumbnail_hz: float = 25.0,
+        recorder: TickObserver | None = None,
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("runner_name", "hardware_runner")
@@ -110,6 +114,10 @@ class HardwareRunner(InferenceRunnerBase):
         self._opened: ExitStack | None = None
         self._episode_idx = -1
         self._episode_open = False
+        self._episode_start_tick = 0
+        self.recorder = recorder
+        if recorder is not None:
+            self.observers.append(recorder)
         self._hal_attrs = {
             semconv.ATTR_HAL_ADAPTER: type(hal).__name__.lower(),
             semconv.ATTR_HAL_ROBOT_MODEL: hal.robot_id,
@@ -195,7 +203,7 @@ class HardwareRunner(InferenceRunnerBase):
     # -- episodes ------------------------------------------------------------------------
 
     def episode_start(self, task_string: str) -> int:
-        """Begin an episode: the skill is reset and ``task_string`` becomes the task.
+        """Begin an episode: the skill is reset, ``task_string`` becomes the task, observers are told.
 
         Returns:
             The new episode's index (0 for the first).
@@ -207,15 +215,22 @@ class HardwareRunner(InferenceRunnerBase):
             raise ROSRuntimeError(f"episode {self._episode_idx} is still open: call episode_end() first")
         self._episode_idx += 1
         self._episode_open = True
+        self._episode_start_tick = self._tick_idx
         self.task = task_string or None
         self.skill.reset()
         self.metadata.setdefault("episodes", []).append(
             {"episode_idx": self._episode_idx, "task": task_string, "start_tick": self._tick_idx}
         )
+        for observer in list(self.observers):
+            self._tell(observer, observer.on_episode_start, self._episode_idx, task_string)
         return self._episode_idx
 
-    def episode_end(self, *, success: bool) -> None:
-        """Close the open episode and record its outcome.
+    def episode_end(self, *, success: bool, keep: bool = True) -> None:
+        """Close the open episode, record its outcome and tell the observers.
+
+        Args:
+            success: Whether the episode reached its goal.
+            keep: ``False`` throws the episode away (a recorder discards the take).
 
         Raises:
             ROSRuntimeError: No episode is open.
@@ -223,7 +238,9 @@ class HardwareRunner(InferenceRunnerBase):
         if not self._episode_open:
             raise ROSRuntimeError("no episode is open: call episode_start() first")
         self._episode_open = False
-        self.metadata["episodes"][-1].update(success=success, end_tick=self._tick_idx)
+        self.metadata["episodes"][-1].update(success=success, kept=keep, end_tick=self._tick_idx)
+        for observer in list(self.observers):
+            self._tell(observer, observer.on_episode_end, self._episode_idx, success=success, keep=keep)
 
     # -- the tick ------------------------------------------------------------------------
 
@@ -243,6 +260,9 @@ class HardwareRunner(InferenceRunnerBase):
         stale = tick.stale_sensors
         violations = tick.safety_violations
 
+        if self._episode_open:
+            tick.episode_idx = self._episode_idx
+            tick.step_idx = tick_idx - self._episode_start_tick
         t0 = now()
         for reader in self._free_readers:
             self._read_sensor(reader)

@@ -1,13 +1,16 @@
 """``TickObserver``: the seam for everything that watches ticks (visualisers, recorders, dashboards).
 
 Observers are called on the tick thread right after each tick is accounted, so they must
-only hand data over (a reference into a queue) and do their work elsewhere. An observer
-that raises is logged and detached; it never stops the robot.
+only hand data over (a reference into a queue) and do their work elsewhere
+(:class:`~openral_runner.queued_observer.QueuedObserver` does that part). An observer that
+raises is logged and detached; it never stops the robot. Observers also hear the episode
+boundaries the runner is given, and are closed (flushed) on every exit path.
 
 A deployment lists observers in its ``observers:`` block; each is a plugin in the
 ``openral.observers`` entry-point group built with
 ``Cls.from_config(params, robot=..., env=..., base_dir=...)``, which validates ``params`` with
 its own typed model and does no I/O that would need undoing (``openral validate`` builds it).
+Observers subclass :class:`TickObserver` and override what they need.
 """
 
 from __future__ import annotations
@@ -23,6 +26,14 @@ class TickObserver(Protocol):
 
     def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
         """Take note of one tick; must not block."""
+
+    def on_episode_start(self, episode_idx: int, task: str) -> None:
+        """An episode began: the ticks that follow belong to it, under ``task``."""
+        return
+
+    def on_episode_end(self, episode_idx: int, *, success: bool, keep: bool = True) -> None:
+        """The episode ended; ``keep=False`` means it is to be thrown away (a re-recorded take)."""
+        return
 
     def close(self) -> None:
         """Flush and release; called once when the runner deactivates."""

@@ -1,0 +1,147 @@
+"""``RolloutRecorder``: the tick stream of a runner, recorded as episodes of a LeRobotDataset.
+
+It is a queued observer: the tick thread hands it the tick's result and the world state the skill
+saw (references, nothing copied); its worker turns each tick inside an episode into one dataset
+row and feeds each camera's frame (the very frame the skill saw) to that camera's video encoder.
+
+Per row: ``observation.state`` is the measured joint state of the tick; ``action`` is the target
+the robot was commanded to after safety (the action sent, or, when the tick's action was
+withheld, the target it kept holding); ``openral.*`` columns keep what really happened (tick
+stamp, lateness, requested action, why an action was withheld, each camera's capture stamp,
+sequence number and age, the tick's trace and span id).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, Self
+
+import structlog
+
+from openral_core import TickResult, WorldState
+from openral_dataset import schema
+from openral_dataset.writer import EpisodeSummary, LeRobotDatasetSink
+from openral_runner.queued_observer import QueuedObserver
+
+_log = structlog.get_logger(__name__)
+
+
+class RolloutRecorder(QueuedObserver):
+    """Records the ticks between ``episode_start`` and ``episode_end`` into ``sink``.
+
+    Pass it to ``HardwareRunner(recorder=...)``; the runner's ``episode_start(task)`` and
+    ``episode_end(success=...)`` mark the episodes, and closing the runner finalizes the dataset.
+
+    Args:
+        sink: Where episodes go.
+        joint_names: The order of the state and action vectors (the robot manifest's joints).
+        max_queue: Ticks held for the worker before the oldest is dropped (and counted).
+    """
+
+    def __init__(self, sink: LeRobotDatasetSink, *, joint_names: Sequence[str], max_queue: int = 4096) -> None:
+        self.sink = sink
+        self.joint_names = list(joint_names)
+        self.episodes: list[EpisodeSummary] = []
+        self.dropped_ticks = 0
+        """Ticks inside an episode that never reached the dataset (the queue overflowed)."""
+        self._held: list[float] | None = None
+        self._state: list[float] | None = None
+        super().__init__(name="openral-recorder", max_queue=max_queue)
+
+    # -- the seed's names ------------------------------------------------------------------
+
+    def finalize(self) -> None:
+        """Write what is queued, commit or discard the open episode, and close the dataset."""
+        self.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.finalize()
+
+    @property
+    def repeated_frames(self) -> int:
+        """Frames repeated in videos because an encoder fell behind, over every episode so far."""
+        return sum(sum(e.repeated_frames.values()) for e in self.episodes)
+
+    # -- worker ----------------------------------------------------------------------------
+
+    def on_overflow(self, tick: TickResult) -> None:
+        if tick.episode_idx is not None:
+            self.dropped_ticks += 1
+
+    def handle_episode_start(self, episode_idx: int, task: str) -> None:
+        self._held = None
+        dataset_idx = self.sink.begin_episode(task)
+        _log.info("recording episode", episode=dataset_idx, task=task)
+
+    def handle_episode_end(self, episode_idx: int, *, success: bool, keep: bool) -> None:
+        if not self.sink.episode_open:
+            return
+        summary = self.sink.end_episode(keep=keep, success=success)
+        self.episodes.append(summary)
+        _log.info(
+            "episode committed" if summary.committed else "episode discarded",
+            episode=summary.episode_idx,
+            frames=summary.frames,
+            close_s=round(summary.close_s, 3),
+        )
+
+    def handle_tick(self, tick: TickResult, world: WorldState | None) -> None:
+        if not self.sink.episode_open or tick.episode_idx is None:
+            return
+        state = self._measured_state(world)
+        if state is None:
+            return  # nothing measured yet: no row can say where the robot was
+        if tick.action_applied and tick.sent_action is not None:
+            self._held = list(tick.sent_action)
+        action = self._held if self._held is not None else state
+        trace_id, span_id = _ids(tick.trace_context)
+        row: dict[str, Any] = {
+            schema.STATE: state,
+            schema.ACTION: action,
+            schema.TICK_IDX: tick.tick_idx,
+            schema.TICK_START_NS: tick.start_ns,
+            schema.LATENESS_MS: tick.lateness_ms,
+            schema.ACTION_APPLIED: tick.action_applied,
+            schema.WITHHELD_REASON: None if tick.withheld_reason is None else str(tick.withheld_reason),
+            schema.REQUESTED_ACTION: tick.requested_action or [math.nan] * len(self.joint_names),
+            schema.TRACE_ID: trace_id,
+            schema.SPAN_ID: span_id,
+        }
+        frames = dict(world.image_frames or {}) if world is not None else {}
+        for cam in self.sink.cameras:
+            frame = frames.get(cam.sensor_id)
+            if frame is not None and world is not None:
+                row[schema.camera_column(cam.sensor_id, "stamp_ns")] = frame.stamp_ns
+                row[schema.camera_column(cam.sensor_id, "seq")] = frame.seq
+                row[schema.camera_column(cam.sensor_id, "age_ms")] = (world.stamp_ns - frame.stamp_ns) / 1e6
+        self.sink.add_row(row, frames)
+
+    def handle_close(self) -> None:
+        if self.sink.episode_open:
+            # The run ended inside an episode (a stop, a fault): what was recorded is kept.
+            self.handle_episode_end(-1, success=False, keep=True)
+        self.sink.close()
+
+    def _measured_state(self, world: WorldState | None) -> list[float] | None:
+        joints = None if world is None else world.joint_state
+        if joints is not None:
+            if list(joints.names) == self.joint_names:
+                self._state = list(joints.positions)
+            else:
+                by_name = dict(zip(joints.names, joints.positions, strict=True))
+                self._state = [by_name[name] for name in self.joint_names]
+        return self._state
+
+
+def _ids(traceparent: str | None) -> tuple[str | None, str | None]:
+    """Trace and span id from a W3C ``traceparent`` value (``None`` when the tick was not traced)."""
+    if not traceparent:
+        return None, None
+    parts = traceparent.split("-")
+    if len(parts) != 4:
+        return None, None
+    return parts[1], parts[2]

@@ -1,0 +1,114 @@
+"""The columns of an openral recording: LeRobot's features, then what really happened under ``openral.*``.
+
+LeRobot's loader reads ``observation.state``, ``action``, one ``observation.images.<cam>`` video per
+camera and the five default columns (``timestamp``, ``frame_index``, ``episode_index``, ``index``,
+``task_index``, last). Everything else is prefixed ``openral.``: no key starting ``observation`` or
+``action`` (those become policy inputs and outputs), no ``/`` in a key.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+import pyarrow as pa
+
+STATE: Final = "observation.state"
+ACTION: Final = "action"
+IMAGE_PREFIX: Final = "observation.images."
+DEFAULT_COLUMNS: Final = ("timestamp", "frame_index", "episode_index", "index", "task_index")
+
+TICK_IDX: Final = "openral.tick_idx"
+TICK_START_NS: Final = "openral.tick_start_ns"
+LATENESS_MS: Final = "openral.lateness_ms"
+ACTION_APPLIED: Final = "openral.action_applied"
+WITHHELD_REASON: Final = "openral.withheld_reason"
+REQUESTED_ACTION: Final = "openral.requested_action"
+TRACE_ID: Final = "openral.trace_id"
+SPAN_ID: Final = "openral.span_id"
+
+_SCALARS: Final = {"int64": pa.int64(), "float32": pa.float32(), "bool": pa.bool_(), "string": pa.string()}
+
+
+def camera_column(camera: str, what: str) -> str:
+    """The ``openral.<camera>.<what>`` column of one camera (``stamp_ns``, ``seq``, ``age_ms``, ``repeated``)."""
+    return f"openral.{camera}.{what}"
+
+
+def video_key(camera: str) -> str:
+    """The LeRobot feature (and video folder) name of a camera."""
+    return f"{IMAGE_PREFIX}{camera}"
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """One recorded camera: its sensor id and the video's size."""
+
+    sensor_id: str
+    width: int
+    height: int
+
+
+def features(
+    joint_names: Sequence[str], cameras: Sequence[CameraSpec], *, fps: int, vcodec: str
+) -> dict[str, dict[str, Any]]:
+    """The ``features`` block of ``meta/info.json``, in column order, the five defaults last."""
+    joints = list(joint_names)
+    n = len(joints)
+    out: dict[str, dict[str, Any]] = {
+        STATE: {"dtype": "float32", "shape": [n], "names": joints},
+        ACTION: {"dtype": "float32", "shape": [n], "names": joints},
+    }
+    for cam in cameras:
+        out[video_key(cam.sensor_id)] = {
+            "dtype": "video",
+            "shape": [cam.height, cam.width, 3],
+            "names": ["height", "width", "channels"],
+            "info": {
+                "video.height": cam.height,
+                "video.width": cam.width,
+                "video.codec": "av1" if vcodec == "libsvtav1" else "h264",
+                "video.pix_fmt": "yuv420p",
+                "video.is_depth_map": False,
+                "video.fps": fps,
+                "video.channels": 3,
+                "has_audio": False,
+            },
+        }
+    out[TICK_IDX] = _scalar("int64")
+    out[TICK_START_NS] = _scalar("int64")
+    out[LATENESS_MS] = _scalar("float32")
+    out[ACTION_APPLIED] = _scalar("bool")
+    out[WITHHELD_REASON] = _scalar("string")
+    out[REQUESTED_ACTION] = {"dtype": "float32", "shape": [n], "names": joints}
+    out[TRACE_ID] = _scalar("string")
+    out[SPAN_ID] = _scalar("string")
+    for cam in cameras:
+        out[camera_column(cam.sensor_id, "stamp_ns")] = _scalar("int64")
+        out[camera_column(cam.sensor_id, "seq")] = _scalar("int64")
+        out[camera_column(cam.sensor_id, "age_ms")] = _scalar("float32")
+        out[camera_column(cam.sensor_id, "repeated")] = _scalar("bool")
+    out["timestamp"] = _scalar("float32")
+    for name in DEFAULT_COLUMNS[1:]:
+        out[name] = _scalar("int64")
+    return out
+
+
+def arrow_schema(feature_block: dict[str, dict[str, Any]]) -> pa.Schema:
+    """The data parquet schema for ``feature_block`` (videos are not columns)."""
+    fields = []
+    for name, spec in feature_block.items():
+        if spec["dtype"] == "video":
+            continue
+        scalar = _SCALARS[spec["dtype"]]
+        shape = spec["shape"]
+        if shape == [1]:
+            fields.append(pa.field(name, scalar))
+        else:
+            fields.append(pa.field(name, pa.list_(scalar, shape[0])))
+    return pa.schema(fields)
+
+
+def _scalar(dtype: str) -> dict[str, Any]:
+    return {"dtype": dtype, "shape": [1], "names": None}

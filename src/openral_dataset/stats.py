@@ -1,0 +1,79 @@
+"""Feature statistics as LeRobot reads them: min, max, mean, std, count and five quantiles.
+
+Per episode they are computed from the episode's values (cameras from a subsample of frames and
+pixels, scaled to 0..1, one value per channel); the dataset's are merged from the episodes'
+with count weights, so committing an episode never re-reads the earlier ones.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Final
+
+import numpy as np
+
+QUANTILES: Final = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
+STAT_NAMES: Final = ("min", "max", "mean", "std", "count", *QUANTILES)
+IMAGE_SAMPLE_FRAMES: Final = 32
+"""Frames per episode (at least, at most twice as many) that camera statistics are computed from."""
+IMAGE_SAMPLE_STRIDE: Final = 8
+"""Every n-th pixel in each direction of a sampled frame."""
+
+
+def vector_stats(values: np.ndarray) -> dict[str, np.ndarray]:
+    """Statistics of a ``[frames, n]`` (or ``[frames]``) array, per column."""
+    data = np.asarray(values, dtype=np.float64)
+    if data.ndim == 1:
+        data = data[:, None]
+    stats = {
+        "min": data.min(axis=0),
+        "max": data.max(axis=0),
+        "mean": data.mean(axis=0),
+        "std": data.std(axis=0),
+        "count": np.array([len(data)]),
+    }
+    for name, q in QUANTILES.items():
+        stats[name] = np.quantile(data, q, axis=0)
+    return stats
+
+
+def image_stats(frames: Sequence[np.ndarray], total_frames: int) -> dict[str, np.ndarray]:
+    """Per-channel statistics (shape ``[3, 1, 1]``, values 0..1) of sampled, subsampled ``[h, w, 3]`` uint8 frames."""
+    pixels = np.concatenate([f.reshape(-1, 3) for f in frames], axis=0).astype(np.float64)
+    pixels /= 255.0
+    stats = vector_stats(pixels)
+    shaped = {name: value.reshape(3, 1, 1) for name, value in stats.items() if name != "count"}
+    shaped["count"] = np.array([total_frames])
+    return shaped
+
+
+def merge_stats(parts: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Merge per-episode statistics of one feature with count weights (quantiles: weighted mean)."""
+    counts = np.array([float(p["count"][0]) for p in parts])
+    weights = counts / counts.sum()
+    means = np.stack([p["mean"] for p in parts])
+    stds = np.stack([p["std"] for p in parts])
+    shape = (-1,) + (1,) * (means.ndim - 1)
+    w = weights.reshape(shape)
+    mean = (w * means).sum(axis=0)
+    variance = (w * (stds**2 + means**2)).sum(axis=0) - mean**2
+    merged = {
+        "min": np.min(np.stack([p["min"] for p in parts]), axis=0),
+        "max": np.max(np.stack([p["max"] for p in parts]), axis=0),
+        "mean": mean,
+        "std": np.sqrt(np.maximum(variance, 0.0)),
+        "count": np.array([int(counts.sum())]),
+    }
+    for name in QUANTILES:
+        merged[name] = (w * np.stack([p[name] for p in parts])).sum(axis=0)
+    return merged
+
+
+def to_json(stats: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, Any]]:
+    """Statistics as nested lists for ``meta/stats.json``."""
+    return {feature: {name: np.asarray(v).tolist() for name, v in values.items()} for feature, values in stats.items()}
+
+
+def from_json(data: dict[str, dict[str, Any]]) -> dict[str, dict[str, np.ndarray]]:
+    """The inverse of :func:`to_json`."""
+    return {feature: {name: np.asarray(v) for name, v in values.items()} for feature, values in data.items()}

@@ -1,0 +1,421 @@
+"""``LeRobotDatasetSink``: episodes written as LeRobotDataset v3.0 with pyarrow and PyAV, each committed atomically.
+
+An episode is built in a staging folder outside ``data/``, ``meta/`` and ``videos/``: its rows in
+memory, one streaming video encoder per camera (frames are encoded while recording). Committing
+writes and syncs its data and episode parquet files, then renames videos, data and episode
+metadata into place, then rewrites ``meta/tasks.parquet`` and ``meta/stats.json``, and
+``meta/info.json`` last: until that rename the episode does not exist, and anything of it left by
+a crash is removed the next time the dataset is opened (:func:`~openral_dataset.layout.remove_uncommitted`).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import structlog
+
+from openral_core import ROSConfigError, ROSRuntimeError, SensorFrame
+from openral_dataset import layout, schema, stats
+from openral_dataset.video import OverflowPolicy, StreamingVideoEncoder
+
+_log = structlog.get_logger(__name__)
+
+
+@dataclass(frozen=True)
+class EpisodeSummary:
+    """What one committed (or discarded) episode held."""
+
+    episode_idx: int
+    frames: int
+    task: str
+    committed: bool
+    repeated_frames: dict[str, int]
+    close_s: float = 0.0
+
+
+@dataclass
+class _Episode:
+    idx: int
+    task: str
+    task_index: int
+    folder: Path
+    rows: dict[str, list[Any]]
+    encoders: dict[str, StreamingVideoEncoder] = field(default_factory=dict)
+    samples: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    sample_stride: dict[str, int] = field(default_factory=dict)
+    failed: bool = False
+
+
+class LeRobotDatasetSink:
+    """Writes episodes of one robot and its cameras into a LeRobotDataset v3.0 folder.
+
+    Args:
+        root: The dataset folder (created if missing).
+        fps: Frames per second: the recording's tick rate, an integer.
+        robot_type: Recorded in ``info.json``.
+        joint_names: Names of the state and action vectors, from the robot manifest.
+        cameras: Recorded cameras with their video size.
+        vcodec: ``libsvtav1`` (default) or ``h264``.
+        overflow: What happens when a camera's encoder falls behind.
+        resume: Append to an existing dataset (its features must match); otherwise an existing,
+            non-empty dataset is refused.
+
+    Raises:
+        ROSConfigError: A bad rate or codec, an existing dataset without ``resume``, or one whose
+            features differ from this recording's.
+    """
+
+    def __init__(
+        self,
+        root: Path,
+        *,
+        fps: int,
+        robot_type: str,
+        joint_names: Sequence[str],
+        cameras: Sequence[schema.CameraSpec] = (),
+        vcodec: str = "libsvtav1",
+        overflow: OverflowPolicy = OverflowPolicy.REPEAT,
+        resume: bool = False,
+    ) -> None:
+        if fps < 1:
+            raise ROSConfigError(f"must be a whole number of frames per second >= 1, got {fps}", field="fps")
+        self.root = root
+        self.fps = fps
+        self.robot_type = robot_type
+        self.joint_names = list(joint_names)
+        self.cameras = list(cameras)
+        self.vcodec = vcodec
+        self.overflow = OverflowPolicy(overflow)
+        self.features = schema.features(self.joint_names, self.cameras, fps=fps, vcodec=vcodec)
+        self._arrow = schema.arrow_schema(self.features)
+        self._episode: _Episode | None = None
+        self._tasks: dict[str, int] = {}
+        self._stats: list[dict[str, dict[str, np.ndarray]]] = []
+        self._merged: dict[str, dict[str, np.ndarray]] = {}
+        self.total_episodes = 0
+        self.total_frames = 0
+        self._open(resume)
+
+    # -- opening ---------------------------------------------------------------------------
+
+    def _open(self, resume: bool) -> None:
+        info = layout.read_info(self.root)
+        if info is None:
+            if layout.dataset_files(self.root) and not resume:
+                raise ROSConfigError(
+                    f"{self.root} holds dataset files but no meta/info.json (an interrupted first episode?)",
+                    field="--dataset-out",
+                    hint="choose an empty folder, or pass --resume to clean it up and record into it",
+                )
+            self._report_cleanup(layout.remove_uncommitted(self.root))
+            self.root.mkdir(parents=True, exist_ok=True)
+            return
+        if not resume:
+            raise ROSConfigError(
+                f"{self.root} already holds a dataset of {info['total_episodes']} episode(s)",
+                field="--dataset-out",
+                hint="pass --resume to add episodes to it, or choose another folder",
+            )
+        self._check_compatible(info)
+        self._report_cleanup(layout.remove_uncommitted(self.root))
+        self.total_episodes = int(info["total_episodes"])
+        self.total_frames = int(info["total_frames"])
+        self._tasks = read_tasks(self.root)
+        stats_path = self.root / layout.STATS_PATH
+        if stats_path.exists():
+            self._merged = stats.from_json(json.loads(stats_path.read_text(encoding="utf-8")))
+
+    def _check_compatible(self, info: dict[str, Any]) -> None:
+        problems = []
+        if info.get("codebase_version") != layout.CODEBASE_VERSION:
+            problems.append(f"codebase_version {info.get('codebase_version')!r}, not {layout.CODEBASE_VERSION!r}")
+        if info.get("fps") != self.fps:
+            problems.append(f"fps {info.get('fps')} (this recording: {self.fps})")
+        theirs = {k: (v["dtype"], v["shape"]) for k, v in info.get("features", {}).items()}
+        ours = {k: (v["dtype"], v["shape"]) for k, v in self.features.items()}
+        if theirs != ours:
+            missing = sorted(set(ours) - set(theirs))
+            extra = sorted(set(theirs) - set(ours))
+            changed = sorted(k for k in set(ours) & set(theirs) if ours[k] != theirs[k])
+            problems.append(f"features differ (missing {missing}, extra {extra}, changed {changed})")
+        if problems:
+            raise ROSConfigError(
+                f"cannot resume {self.root}: " + "; ".join(problems),
+                field="--dataset-out",
+                hint="record into a new folder, or use the robot, cameras and rate the dataset was recorded with",
+            )
+
+    def _report_cleanup(self, removed: list[Path]) -> None:
+        if removed:
+            _log.warning(
+                "removed files of an episode that was never committed",
+                dataset=str(self.root),
+                files=[str(p.relative_to(self.root)) for p in removed],
+            )
+
+    # -- episodes --------------------------------------------------------------------------
+
+    @property
+    def episode_open(self) -> bool:
+        return self._episode is not None
+
+    def begin_episode(self, task: str) -> int:
+        """Start the next episode; returns its index.
+
+        Raises:
+            ROSRuntimeError: An episode is already open.
+        """
+        if self._episode is not None:
+            raise ROSRuntimeError(f"episode {self._episode.idx} is still open")
+        idx = self.total_episodes
+        task_index = self._tasks.get(task, len(self._tasks))
+        folder = self.root / layout.STAGING_DIR / f"episode-{idx:06d}"
+        if folder.exists():
+            shutil.rmtree(folder)
+        folder.mkdir(parents=True)
+        self._episode = _Episode(idx, task, task_index, folder, {name: [] for name in self._arrow.names})
+        return idx
+
+    def add_row(self, row: dict[str, Any], frames: Mapping[str, SensorFrame | None]) -> None:
+        """Append one row (the ``openral.*`` values and state/action) and each camera's frame for it.
+
+        A camera missing from ``frames`` (or ``None``) repeats its previous frame, and the row says so.
+
+        Raises:
+            ROSRuntimeError: No episode is open, or a camera's encoder failed.
+        """
+        episode = self._episode
+        if episode is None:
+            raise ROSRuntimeError("no episode is open: call begin_episode() first")
+        frame_index = len(episode.rows["frame_index"])
+        for cam in self.cameras:
+            frame = frames.get(cam.sensor_id)
+            encoder = episode.encoders.get(cam.sensor_id)
+            if encoder is None:
+                encoder = episode.encoders[cam.sensor_id] = StreamingVideoEncoder(
+                    episode.folder / f"{cam.sensor_id}.mp4",
+                    fps=self.fps,
+                    width=cam.width,
+                    height=cam.height,
+                    vcodec=self.vcodec,
+                    overflow=self.overflow,
+                )
+            encoded = encoder.add(frame)
+            if encoder.failed:
+                episode.failed = True
+            row[schema.camera_column(cam.sensor_id, "repeated")] = not encoded
+            if frame is not None and encoded:
+                self._sample(episode, cam.sensor_id, frame, frame_index)
+        row["timestamp"] = frame_index / self.fps
+        row["frame_index"] = frame_index
+        row["episode_index"] = episode.idx
+        row["index"] = self.total_frames + frame_index
+        row["task_index"] = episode.task_index
+        columns = episode.rows
+        for name in columns:
+            columns[name].append(row.get(name))
+
+    def end_episode(self, *, keep: bool = True, success: bool | None = None) -> EpisodeSummary:
+        """Commit the open episode (``keep``) or discard it without a trace.
+
+        An episode with no rows, or whose encoder fell behind under the ``fail`` policy, is discarded.
+
+        Raises:
+            ROSRuntimeError: No episode is open, or writing failed (the episode is then discarded).
+        """
+        import time  # noqa: PLC0415
+
+        started = time.perf_counter()
+        episode = self._episode
+        if episode is None:
+            raise ROSRuntimeError("no episode is open")
+        self._episode = None
+        frames = len(episode.rows["frame_index"])
+        repeated = {cam: enc.repeated for cam, enc in episode.encoders.items()}
+        if not keep or frames == 0 or episode.failed:
+            if episode.failed:
+                _log.error("episode discarded: a video encoder fell behind (policy 'fail')", episode=episode.idx)
+            for encoder in episode.encoders.values():
+                encoder.abort()
+            shutil.rmtree(episode.folder, ignore_errors=True)
+            return EpisodeSummary(episode.idx, frames, episode.task, False, repeated)
+        try:
+            self._commit(episode, frames, success)
+        except Exception:
+            for encoder in episode.encoders.values():
+                encoder.abort()
+            shutil.rmtree(episode.folder, ignore_errors=True)
+            layout.remove_uncommitted(self.root)
+            raise
+        return EpisodeSummary(episode.idx, frames, episode.task, True, repeated, time.perf_counter() - started)
+
+    def close(self) -> None:
+        """Discard an episode still open and remove the staging area."""
+        if self._episode is not None:
+            self.end_episode(keep=False)
+        staging = self.root / layout.STAGING_DIR
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+
+    # -- commit ----------------------------------------------------------------------------
+
+    def _commit(self, episode: _Episode, frames: int, success: bool | None) -> None:
+        for cam in self.cameras:
+            written = episode.encoders[cam.sensor_id].finish()
+            if written != frames:
+                raise ROSRuntimeError(f"camera {cam.sensor_id}: {written} video frames for {frames} rows")
+        table = pa.table(
+            {name: pa.array(values, type=self._arrow.field(name).type) for name, values in episode.rows.items()}
+        )
+        data_tmp = episode.folder / "data.parquet"
+        pq.write_table(table, data_tmp)
+        layout.sync_file(data_tmp)
+        episode_stats = self._episode_stats(episode, table)
+        meta_tmp = episode.folder / "episode.parquet"
+        pq.write_table(self._episode_row(episode, frames, episode_stats, success), meta_tmp)
+        layout.sync_file(meta_tmp)
+
+        for cam in self.cameras:
+            layout.move_synced(
+                episode.folder / f"{cam.sensor_id}.mp4",
+                layout.video_file(self.root, schema.video_key(cam.sensor_id), episode.idx),
+            )
+        layout.move_synced(data_tmp, layout.data_file(self.root, episode.idx))
+        layout.move_synced(meta_tmp, layout.episodes_file(self.root, episode.idx))
+        shutil.rmtree(episode.folder, ignore_errors=True)
+
+        tasks = dict(self._tasks)
+        tasks.setdefault(episode.task, episode.task_index)
+        layout.write_atomic(self.root / layout.TASKS_PATH, tasks_parquet_bytes(tasks))
+        merged = {
+            name: stats.merge_stats([self._merged[name], values]) if name in self._merged else values
+            for name, values in episode_stats.items()
+        }
+        layout.write_atomic(self.root / layout.STATS_PATH, json.dumps(stats.to_json(merged), indent=2).encode("utf-8"))
+        info = self._info(self.total_episodes + 1, self.total_frames + frames, len(tasks))
+        layout.write_atomic(self.root / layout.INFO_PATH, json.dumps(info, indent=2).encode("utf-8"))
+        # Committed: only now does the in-memory view move on.
+        self._tasks = tasks
+        self._merged = merged
+        self.total_episodes += 1
+        self.total_frames += frames
+
+    def _info(self, episodes: int, frames: int, tasks: int) -> dict[str, Any]:
+        return {
+            "codebase_version": layout.CODEBASE_VERSION,
+            "robot_type": self.robot_type,
+            "total_episodes": episodes,
+            "total_frames": frames,
+            "total_tasks": tasks,
+            "chunks_size": layout.CHUNKS_SIZE,
+            "data_files_size_in_mb": 100,
+            "video_files_size_in_mb": 200,
+            "fps": self.fps,
+            "splits": {"train": f"0:{episodes}"},
+            "data_path": layout.DATA_PATH,
+            "video_path": layout.VIDEO_PATH if self.cameras else None,
+            "features": self.features,
+        }
+
+    def _episode_stats(self, episode: _Episode, table: pa.Table) -> dict[str, dict[str, np.ndarray]]:
+        out = {}
+        for name in (schema.STATE, schema.ACTION, *schema.DEFAULT_COLUMNS):
+            column = table.column(name)
+            values = np.asarray(column.to_pylist(), dtype=np.float64)
+            out[name] = stats.vector_stats(values)
+        for cam in self.cameras:
+            samples = episode.samples.get(cam.sensor_id)
+            if samples:
+                out[schema.video_key(cam.sensor_id)] = stats.image_stats(samples, len(table))
+        return out
+
+    def _episode_row(
+        self, episode: _Episode, frames: int, episode_stats: dict[str, dict[str, np.ndarray]], success: bool | None
+    ) -> pa.Table:
+        where = layout.chunk_file(episode.idx)
+        row: dict[str, Any] = {
+            "episode_index": [episode.idx],
+            "tasks": [[episode.task]],
+            "length": [frames],
+            "data/chunk_index": [where["chunk_index"]],
+            "data/file_index": [where["file_index"]],
+            "dataset_from_index": [self.total_frames],
+            "dataset_to_index": [self.total_frames + frames],
+        }
+        for cam in self.cameras:
+            key = schema.video_key(cam.sensor_id)
+            row[f"videos/{key}/chunk_index"] = [where["chunk_index"]]
+            row[f"videos/{key}/file_index"] = [where["file_index"]]
+            row[f"videos/{key}/from_timestamp"] = [0.0]
+            row[f"videos/{key}/to_timestamp"] = [frames / self.fps]
+        row["meta/episodes/chunk_index"] = [where["chunk_index"]]
+        row["meta/episodes/file_index"] = [where["file_index"]]
+        for feature, values in episode_stats.items():
+            for name, value in values.items():
+                row[f"stats/{feature}/{name}"] = [np.asarray(value).tolist()]
+        row["openral.success"] = [success]
+        for cam in self.cameras:
+            row[f"openral.{cam.sensor_id}.repeated_frames"] = [episode.encoders[cam.sensor_id].repeated]
+        return pa.table(row)
+
+    @staticmethod
+    def _sample(episode: _Episode, camera: str, frame: SensorFrame, frame_index: int) -> None:
+        """Keep every n-th frame (subsampled) for camera statistics; n doubles whenever the sample fills up."""
+        stride = episode.sample_stride.setdefault(camera, 1)
+        if frame_index % stride:
+            return
+        samples = episode.samples.setdefault(camera, [])
+        array = frame.as_array()
+        if array.ndim != 3 or array.shape[2] < 3:
+            return
+        samples.append(np.asarray(array[:: stats.IMAGE_SAMPLE_STRIDE, :: stats.IMAGE_SAMPLE_STRIDE, :3]).copy())
+        if len(samples) >= 2 * stats.IMAGE_SAMPLE_FRAMES:
+            del samples[1::2]
+            episode.sample_stride[camera] = stride * 2
+
+
+def tasks_parquet_bytes(tasks: dict[str, int]) -> bytes:
+    """``meta/tasks.parquet``: a pandas frame indexed by the task string, with a ``task_index`` column."""
+    ordered = sorted(tasks.items(), key=lambda item: item[1])
+    table = pa.table(
+        {"task_index": pa.array([i for _t, i in ordered], pa.int64()), "task": pa.array([t for t, _i in ordered])}
+    )
+    pandas_meta = {
+        "index_columns": ["task"],
+        "column_indexes": [
+            {"name": None, "field_name": None, "pandas_type": "unicode", "numpy_type": "object", "metadata": None}
+        ],
+        "columns": [
+            {
+                "name": "task_index",
+                "field_name": "task_index",
+                "pandas_type": "int64",
+                "numpy_type": "int64",
+                "metadata": None,
+            },
+            {"name": "task", "field_name": "task", "pandas_type": "unicode", "numpy_type": "object", "metadata": None},
+        ],
+        "creator": {"library": "pyarrow", "version": pa.__version__},
+        "pandas_version": "2.2.0",
+    }
+    table = table.replace_schema_metadata({b"pandas": json.dumps(pandas_meta).encode("utf-8")})
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink)
+    return bytes(sink.getvalue().to_pybytes())
+
+
+def read_tasks(root: Path) -> dict[str, int]:
+    """Task string → task index, from ``meta/tasks.parquet`` (empty when there is none)."""
+    path = root / layout.TASKS_PATH
+    if not path.exists():
+        return {}
+    table = pq.read_table(path)
+    return dict(zip(table.column("task").to_pylist(), table.column("task_index").to_pylist(), strict=True))

@@ -1,0 +1,167 @@
+"""Recording through the runner: rows, frames and episodes land in a LeRobotDataset v3.0 that checks clean."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import av
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from openral_core import FrameEncoding, ROSConfigError, SensorFrame, SensorReaderConfig
+from openral_dataset import layout, schema
+from openral_dataset.check import check_dataset
+from openral_dataset.recorder import RolloutRecorder
+from openral_dataset.testing import numbered_pixels, read_number
+from openral_dataset.writer import LeRobotDatasetSink, read_tasks
+from openral_hal.testing import RecordingHAL
+from openral_rskill.testing import ScriptedSkill
+from openral_runner.hardware import HardwareRunner
+from openral_runner.testing import FakeClock
+from openral_world_state import WorldStateAggregator
+
+JOINTS = ["j0", "j1", "j2"]
+FPS = 30
+W, H = 64, 48
+
+
+class NumberedReader:
+    """A camera whose n-th capture shows the number n (a real reader's five protocol members)."""
+
+    def __init__(self, sensor_id: str, clock: FakeClock) -> None:
+        self.sensor_id = sensor_id
+        self.clock = clock
+        self.seq = 0
+        self._open = False
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def open(self) -> None:
+        self._open = True
+
+    def close(self) -> None:
+        self._open = False
+
+    def read_latest(self, max_age_ms: float | None = None) -> SensorFrame:
+        self.seq += 1
+        return SensorFrame(
+            sensor_id=self.sensor_id,
+            stamp_ns=self.clock.now_ns() - 2_000_000,
+            width=W,
+            height=H,
+            encoding=FrameEncoding.RGB8,
+            seq=self.seq,
+            data=numbered_pixels(self.seq, W, H),
+        )
+
+
+def _runner(tmp_path: Path, clock: FakeClock, *, resume: bool = False) -> tuple[HardwareRunner, RolloutRecorder]:
+    sink = LeRobotDatasetSink(
+        tmp_path / "ds",
+        fps=FPS,
+        robot_type="so101_follower",
+        joint_names=JOINTS,
+        cameras=[schema.CameraSpec("front", W, H)],
+        vcodec="h264",
+        resume=resume,
+    )
+    recorder = RolloutRecorder(sink, joint_names=JOINTS)
+    skill = ScriptedSkill(JOINTS, actions=[[0.1 * i, 0.0, 0.0] for i in range(1, 200)])
+    skill.configure()
+    skill.activate()
+    aggregator = WorldStateAggregator(sensors=[SensorReaderConfig(sensor_id="front")], clock=clock.now_ns)
+    runner = HardwareRunner(
+        hal=RecordingHAL(JOINTS, clock_ns=clock.now_ns),
+        skill=skill,
+        aggregator=aggregator,
+        sensor_readers=[NumberedReader("front", clock)],
+        rate_hz=FPS,
+        clock=clock,
+        thumbnail_hz=0.0,
+        recorder=recorder,
+    )
+    return runner, recorder
+
+
+def _decode(path: Path) -> list[np.ndarray]:
+    with av.open(str(path)) as container:
+        return [frame.to_ndarray(format="rgb24") for frame in container.decode(container.streams.video[0])]
+
+
+def test_three_episodes_two_tasks_record_the_frames_the_skill_saw(tmp_path: Path) -> None:
+    clock = FakeClock()
+    runner, recorder = _runner(tmp_path, clock)
+    runner.activate()
+    lengths = [5, 9, 7]
+    tasks = ["pick the cube", "place the cube", "pick the cube"]
+    for length, task in zip(lengths, tasks, strict=True):
+        runner.episode_start(task)
+        runner.run(length)
+        runner.episode_end(success=True)
+    runner.run(3)  # between episodes: nothing is recorded
+    runner.deactivate()
+    assert recorder.errors == 0
+    assert [e.frames for e in recorder.episodes] == lengths
+
+    root = tmp_path / "ds"
+    report = check_dataset(root)
+    assert report.problems == []
+    assert (report.episodes, report.frames, report.videos) == (3, 21, 3)
+    assert read_tasks(root) == {"pick the cube": 0, "place the cube": 1}
+    for episode, length in enumerate(lengths):
+        table = pq.read_table(layout.data_file(root, episode)).to_pydict()
+        assert table["timestamp"] == pytest.approx([i / FPS for i in range(length)])
+        frames = _decode(layout.video_file(root, schema.video_key("front"), episode))
+        assert len(frames) == length
+        # Row k's video frame is the very frame the skill saw: its number is the recorded capture sequence.
+        assert [read_number(f) for f in frames] == table["openral.front.seq"]
+        assert all(table["openral.action_applied"])
+        np.testing.assert_allclose(table["action"], table["openral.requested_action"])
+        assert table["task_index"] == [0 if tasks[episode] == "pick the cube" else 1] * length
+
+
+def test_a_discarded_take_leaves_no_trace(tmp_path: Path) -> None:
+    clock = FakeClock()
+    runner, _recorder = _runner(tmp_path, clock)
+    runner.activate()
+    runner.episode_start("take one")
+    runner.run(4)
+    runner.episode_end(success=False, keep=False)
+    runner.episode_start("take two")
+    runner.run(6)
+    runner.episode_end(success=True)
+    runner.deactivate()
+    root = tmp_path / "ds"
+    assert check_dataset(root).problems == []
+    assert read_tasks(root) == {"take two": 0}
+    table = pq.read_table(layout.data_file(root, 0)).to_pydict()
+    assert len(table["index"]) == 6
+    seqs = table["openral.front.seq"]
+    assert seqs == list(range(seqs[0], seqs[0] + 6))  # none of the discarded take's frames
+    assert not (root / layout.STAGING_DIR).exists()
+
+
+def test_resume_continues_the_index_and_refuses_a_different_robot(tmp_path: Path) -> None:
+    clock = FakeClock()
+    runner, _ = _runner(tmp_path, clock)
+    runner.activate()
+    runner.episode_start("pick")
+    runner.run(5)
+    runner.episode_end(success=True)
+    runner.deactivate()
+    with pytest.raises(ROSConfigError, match="--resume"):
+        _runner(tmp_path, clock)
+    runner, _ = _runner(tmp_path, clock, resume=True)
+    runner.activate()
+    runner.episode_start("pick")
+    runner.run(4)
+    runner.episode_end(success=True)
+    runner.deactivate()
+    report = check_dataset(tmp_path / "ds")
+    assert report.problems == []
+    assert (report.episodes, report.frames) == (2, 9)
+    with pytest.raises(ROSConfigError, match="features differ"):
+        LeRobotDatasetSink(tmp_path / "ds", fps=FPS, robot_type="x", joint_names=["a"], resume=True)
