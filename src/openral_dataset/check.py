@@ -185,7 +185,11 @@ def _check_video(path: Path, rows: int, fps: int, problems: list[str]) -> None:
     try:
         with av.open(str(path)) as container:
             stream = container.streams.video[0]
-            times = [float(frame.pts * stream.time_base) for frame in container.decode(stream) if frame.pts is not None]
+            base = stream.time_base
+            if base is None:
+                problems.append(f"{path.name}: the video stream has no time base")
+                return
+            times = [float(frame.pts * base) for frame in container.decode(stream) if frame.pts is not None]
     except Exception as exc:
         problems.append(f"{path.name}: cannot be decoded ({exc})")
         return
