@@ -6,12 +6,14 @@ import importlib
 import logging
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
 import structlog
 
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, EXIT_RUNTIME, EXIT_SIGINT, EXIT_SIGTERM, exit_codes
+from openral_cli.recording import build_recorder, dataset, recording_summary
 from openral_cli.report import format_run_result
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
@@ -40,7 +42,19 @@ _STOP_EXIT_CODES = {
     StopReason.FAULTS: EXIT_RUNTIME,
     StopReason.ESTOP: EXIT_RUNTIME,
 }
+_SUCCESSFUL_STOPS = frozenset({StopReason.MAX_TICKS, StopReason.DURATION, StopReason.SKILL_DONE})
+"""How a recorded run may end and still count as a successful episode."""
 _log = structlog.get_logger("openral")
+
+
+@dataclass(frozen=True)
+class Recording:
+    """What ``deploy --dataset-out`` records: one episode of the run."""
+
+    root: Path
+    task: str
+    resume: bool
+    vcodec: str
 
 
 class Seconds(click.ParamType):  # type: ignore[type-arg]
@@ -144,6 +158,21 @@ def cli(ctx: click.Context, debug: bool) -> None:
     default=None,
     help="Record the same channels as --foxglove to an MCAP file.",
 )
+@click.option(
+    "--dataset-out",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=None,
+    help="Record the run as one episode of a LeRobotDataset v3.0 in this folder.",
+)
+@click.option("--task", default="", help="The episode's task string (with --dataset-out).")
+@click.option("--resume", is_flag=True, help="Add the episode to the dataset already in --dataset-out.")
+@click.option(
+    "--vcodec",
+    type=click.Choice(["libsvtav1", "h264"]),
+    default="libsvtav1",
+    show_default=True,
+    help="Video codec of the recorded cameras.",
+)
 @click.pass_context
 def deploy(
     ctx: click.Context,
@@ -157,6 +186,10 @@ def deploy(
     trace_sample_ratio: float | None,
     foxglove_port: int | None,
     mcap_path: Path | None,
+    dataset_out: Path | None,
+    task: str,
+    resume: bool,
+    vcodec: str,
 ) -> None:
     """Run a deployment until --max-ticks, --duration, Ctrl-C or a safety stop.
 
@@ -188,6 +221,9 @@ def deploy(
                         quiet=as_json,
                         foxglove_port=foxglove_port,
                         mcap_path=mcap_path,
+                        recording=None
+                        if dataset_out is None
+                        else Recording(dataset_out, task or env.task.instruction or "", resume, vcodec),
                     )
                 except ROSDeadlineMissed as exc:
                     if exc.run_result is not None:
@@ -221,9 +257,14 @@ def _deploy(
     quiet: bool,
     foxglove_port: int | None = None,
     mcap_path: Path | None = None,
+    recording: Recording | None = None,
 ) -> RunResult:
     """Build, start, run and close one deployment; a stop signal at any point unwinds what was started."""
     runner, skill = build_runner(env, base_dir=base_dir)
+    recorder = None
+    if recording is not None:
+        recorder = build_recorder(env, recording.root, resume=recording.resume, vcodec=recording.vcodec)
+        runner.attach_recorder(recorder)  # closed (the dataset finalized) by runner.deactivate()
     signals.on_stop(runner.request_stop)
     # The escape: the robot's torque off even if the main thread is stuck (bounded by StopSignals).
     signals.on_force(runner.hal.disconnect)
@@ -243,10 +284,17 @@ def _deploy(
         runner.activate()  # checks for a stop between its own steps and rolls back
         try:
             _log.info("running", deployment=env.name, rate_hz=env.rate_hz, skill=env.vla.id, robot=env.hal.robot_id)
+            if recording is not None:
+                runner.episode_start(recording.task)
             with LiveStatus(runner, sys.stderr, title=env.name):
-                return runner.run(max_ticks, duration_s=duration)
+                result = runner.run(max_ticks, duration_s=duration)
+            if recording is not None:
+                runner.episode_end(success=result.stop_reason in _SUCCESSFUL_STOPS)
+            return result
         finally:
             runner.deactivate()
+            if recorder is not None and not quiet:
+                click.echo(recording_summary(recorder), err=True)
     except ROSStopRequested as exc:
         _log.info("stopped before the first tick; everything started was closed", reason=exc.reason)
         return RunResult(
@@ -260,6 +308,8 @@ def _deploy(
         skill.shutdown()
         if sink is not None:
             sink.close()  # idempotent; here for runs that never reached activate()
+        if recorder is not None:
+            recorder.close()  # idempotent; a run that never started leaves no episode
 
 
 @cli.command()
@@ -335,6 +385,9 @@ def calibrate(
             prompt=lambda message: click.prompt(message, default="", show_default=False),
             say=click.echo,
         )
+
+
+cli.add_command(dataset)
 
 
 def main() -> None:

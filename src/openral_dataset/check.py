@@ -13,12 +13,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import av
 import numpy as np
 import pyarrow.parquet as pq
 
+from openral_core import ROSDependencyMissing
 from openral_dataset import layout, schema
 from openral_dataset.writer import read_tasks
+
+try:
+    import av
+except ImportError as exc:
+    raise ROSDependencyMissing("av", extra="dataset", needed_for="recording datasets") from exc
 
 TIME_TOLERANCE_S = 1e-4
 """How far from ``i / fps`` a video frame may lie: what LeRobot's decoder accepts."""

@@ -12,7 +12,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-import pyarrow as pa
+from openral_core import ROSDependencyMissing
+
+try:
+    import pyarrow as pa
+except ImportError as exc:
+    raise ROSDependencyMissing("pyarrow", extra="dataset", needed_for="recording datasets") from exc
+
 
 STATE: Final = "observation.state"
 ACTION: Final = "action"
@@ -43,11 +49,11 @@ def video_key(camera: str) -> str:
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """One recorded camera: its sensor id and the video's size."""
+    """One recorded camera: its sensor id and the video's size (0 until known)."""
 
     sensor_id: str
-    width: int
-    height: int
+    width: int = 0
+    height: int = 0
 
 
 def features(

@@ -18,11 +18,15 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any, Final
 
-import av
 import numpy as np
 
-from openral_core import FrameEncoding, ROSConfigError, ROSRuntimeError, SensorFrame
+from openral_core import FrameEncoding, ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SensorFrame
 from openral_dataset.layout import sync_file
+
+try:
+    import av
+except ImportError as exc:
+    raise ROSDependencyMissing("av", extra="dataset", needed_for="recording datasets") from exc
 
 os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its banner to stderr unless told errors only
 

@@ -18,13 +18,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
 import structlog
 
-from openral_core import ROSConfigError, ROSRuntimeError, SensorFrame
+from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SensorFrame
 from openral_dataset import layout, schema, stats
 from openral_dataset.video import OverflowPolicy, StreamingVideoEncoder
+
+try:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+except ImportError as exc:
+    raise ROSDependencyMissing("pyarrow", extra="dataset", needed_for="recording datasets") from exc
 
 _log = structlog.get_logger(__name__)
 
@@ -51,6 +55,7 @@ class _Episode:
     encoders: dict[str, StreamingVideoEncoder] = field(default_factory=dict)
     samples: dict[str, list[np.ndarray]] = field(default_factory=dict)
     sample_stride: dict[str, int] = field(default_factory=dict)
+    unsized: dict[str, int] = field(default_factory=dict)
     failed: bool = False
 
 
@@ -62,7 +67,7 @@ class LeRobotDatasetSink:
         fps: Frames per second: the recording's tick rate, an integer.
         robot_type: Recorded in ``info.json``.
         joint_names: Names of the state and action vectors, from the robot manifest.
-        cameras: Recorded cameras with their video size.
+        cameras: Recorded cameras with their video size (0 x 0: the size of the camera's first frame).
         vcodec: ``libsvtav1`` (default) or ``h264``.
         overflow: What happens when a camera's encoder falls behind.
         resume: Append to an existing dataset (its features must match); otherwise an existing,
@@ -124,6 +129,7 @@ class LeRobotDatasetSink:
                 field="--dataset-out",
                 hint="pass --resume to add episodes to it, or choose another folder",
             )
+        self._adopt_sizes(info)
         self._check_compatible(info)
         self._report_cleanup(layout.remove_uncommitted(self.root))
         self.total_episodes = int(info["total_episodes"])
@@ -132,6 +138,15 @@ class LeRobotDatasetSink:
         stats_path = self.root / layout.STATS_PATH
         if stats_path.exists():
             self._merged = stats.from_json(json.loads(stats_path.read_text(encoding="utf-8")))
+
+    def _adopt_sizes(self, info: dict[str, Any]) -> None:
+        """Cameras whose size was left open take the size the dataset already has."""
+        for index, cam in enumerate(self.cameras):
+            spec = info.get("features", {}).get(schema.video_key(cam.sensor_id))
+            if not cam.width and spec is not None:
+                height, width, _channels = spec["shape"]
+                self.cameras[index] = schema.CameraSpec(cam.sensor_id, width, height)
+        self.features = schema.features(self.joint_names, self.cameras, fps=self.fps, vcodec=self.vcodec)
 
     def _check_compatible(self, info: dict[str, Any]) -> None:
         problems = []
@@ -196,18 +211,13 @@ class LeRobotDatasetSink:
         if episode is None:
             raise ROSRuntimeError("no episode is open: call begin_episode() first")
         frame_index = len(episode.rows["frame_index"])
-        for cam in self.cameras:
+        for index, cam in enumerate(self.cameras):
             frame = frames.get(cam.sensor_id)
-            encoder = episode.encoders.get(cam.sensor_id)
-            if encoder is None:
-                encoder = episode.encoders[cam.sensor_id] = StreamingVideoEncoder(
-                    episode.folder / f"{cam.sensor_id}.mp4",
-                    fps=self.fps,
-                    width=cam.width,
-                    height=cam.height,
-                    vcodec=self.vcodec,
-                    overflow=self.overflow,
-                )
+            encoder = episode.encoders.get(cam.sensor_id) or self._start_encoder(episode, index, frame)
+            if encoder is None:  # size still unknown: a black frame goes in once it is
+                episode.unsized[cam.sensor_id] = episode.unsized.get(cam.sensor_id, 0) + 1
+                row[schema.camera_column(cam.sensor_id, "repeated")] = True
+                continue
             encoded = encoder.add(frame)
             if encoder.failed:
                 episode.failed = True
@@ -222,6 +232,32 @@ class LeRobotDatasetSink:
         columns = episode.rows
         for name in columns:
             columns[name].append(row.get(name))
+
+    def _start_encoder(self, episode: _Episode, index: int, frame: SensorFrame | None) -> StreamingVideoEncoder | None:
+        """The episode's encoder for camera ``index``; ``None`` while its size is unknown and no frame came."""
+        cam = self.cameras[index]
+        if not cam.width:
+            if frame is None:
+                return None
+            cam = self._size_camera(index, frame)
+        encoder = episode.encoders[cam.sensor_id] = StreamingVideoEncoder(
+            episode.folder / f"{cam.sensor_id}.mp4",
+            fps=self.fps,
+            width=cam.width,
+            height=cam.height,
+            vcodec=self.vcodec,
+            overflow=self.overflow,
+        )
+        for _ in range(episode.unsized.pop(cam.sensor_id, 0)):
+            encoder.add(None)
+        return encoder
+
+    def _size_camera(self, index: int, frame: SensorFrame) -> schema.CameraSpec:
+        """Fix a camera's video size from its first frame (even, as 4:2:0 video needs)."""
+        cam = schema.CameraSpec(frame.sensor_id, frame.width - frame.width % 2, frame.height - frame.height % 2)
+        self.cameras[index] = cam
+        self.features = schema.features(self.joint_names, self.cameras, fps=self.fps, vcodec=self.vcodec)
+        return cam
 
     def end_episode(self, *, keep: bool = True, success: bool | None = None) -> EpisodeSummary:
         """Commit the open episode (``keep``) or discard it without a trace.
@@ -269,6 +305,8 @@ class LeRobotDatasetSink:
 
     def _commit(self, episode: _Episode, frames: int, success: bool | None) -> None:
         for cam in self.cameras:
+            if cam.sensor_id not in episode.encoders:
+                raise ROSRuntimeError(f"camera {cam.sensor_id} delivered no frame in episode {episode.idx}")
             written = episode.encoders[cam.sensor_id].finish()
             if written != frames:
                 raise ROSRuntimeError(f"camera {cam.sensor_id}: {written} video frames for {frames} rows")

@@ -115,15 +115,28 @@ class HardwareRunner(InferenceRunnerBase):
         self._episode_idx = -1
         self._episode_open = False
         self._episode_start_tick = 0
-        self.recorder = recorder
+        self.recorder: TickObserver | None = None
         if recorder is not None:
-            self.observers.append(recorder)
+            self.attach_recorder(recorder)
         self._hal_attrs = {
             semconv.ATTR_HAL_ADAPTER: type(hal).__name__.lower(),
             semconv.ATTR_HAL_ROBOT_MODEL: hal.robot_id,
         }
         self._sensor_attrs = {r.sensor_id: {semconv.ATTR_SENSOR_ID: r.sensor_id} for r in self.sensor_readers}
         # Durations measured here are never negative: recorded on the instruments directly.
+
+    def attach_recorder(self, recorder: TickObserver) -> None:
+        """Make ``recorder`` the runner's recorder: its first observer, closed with the runner.
+
+        Raises:
+            ROSRuntimeError: The runner is active, or already has a recorder.
+        """
+        if self._opened is not None:
+            raise ROSRuntimeError("attach the recorder before activate()")
+        if self.recorder is not None:
+            raise ROSRuntimeError("the runner already has a recorder")
+        self.recorder = recorder
+        self.observers.insert(0, recorder)
 
     # -- lifecycle -----------------------------------------------------------------------
 

@@ -1,0 +1,80 @@
+"""The CLI's recording glue: a deployment's recorder, and ``openral dataset check``.
+
+``openral_dataset`` imports pyarrow and PyAV (the ``dataset`` extra); it is loaded only when a
+command asks for a recording.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from pathlib import Path
+from typing import Any
+
+import click
+
+from openral_core import RobotEnvironment, ROSConfigError
+from openral_hal.manifests import load_robot_manifest
+
+
+def build_recorder(env: RobotEnvironment, dataset_out: Path, *, resume: bool, vcodec: str) -> Any:
+    """A ``RolloutRecorder`` writing ``env``'s robot and cameras to ``dataset_out`` at the tick rate.
+
+    Raises:
+        ROSConfigError: The tick rate is not a whole number (a dataset's fps is), or the dataset
+            cannot be opened as asked.
+        ROSDependencyMissing: The ``dataset`` extra is not installed.
+    """
+    if not math.isclose(env.rate_hz, round(env.rate_hz)):
+        raise ROSConfigError(
+            f"a dataset records whole frames per second; the tick rate is {env.rate_hz:g} Hz",
+            field="rate_hz",
+            hint="use a whole number of Hz to record",
+        )
+    writer = importlib.import_module("openral_dataset.writer")
+    recorder_module = importlib.import_module("openral_dataset.recorder")
+    schema = importlib.import_module("openral_dataset.schema")
+    robot = load_robot_manifest(env.hal.robot_id)
+    cameras = [schema.CameraSpec(s.sensor_id, s.width or 0, s.height or 0) for s in env.sensors]
+    sink = writer.LeRobotDatasetSink(
+        dataset_out,
+        fps=round(env.rate_hz),
+        robot_type=robot.robot_id,
+        joint_names=robot.joint_names,
+        cameras=cameras,
+        vcodec=vcodec,
+        resume=resume,
+    )
+    return recorder_module.RolloutRecorder(sink, joint_names=robot.joint_names)
+
+
+def recording_summary(recorder: Any) -> str:
+    """One line: episodes committed, frames, repeated frames and dropped ticks."""
+    committed = [e for e in recorder.episodes if e.committed]
+    frames = sum(e.frames for e in committed)
+    return (
+        f"dataset {recorder.sink.root}: {len(committed)} episode(s) committed, {frames} frames, "
+        f"{recorder.repeated_frames} repeated frame(s), {recorder.dropped_ticks} dropped tick(s)"
+    )
+
+
+@click.group()
+def dataset() -> None:
+    """Check and inspect recorded datasets."""
+
+
+@dataset.command("check")
+@click.argument("root", metavar="DIR", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--no-video", is_flag=True, help="Skip decoding the videos (faster; checks the tables only).")
+def check(root: Path, no_video: bool) -> None:
+    """Validate a LeRobotDataset v3.0: layout, counters, index, frame grid, videos, orphans."""
+    checker = importlib.import_module("openral_dataset.check")
+    report = checker.check_dataset(root, decode_videos=not no_video)
+    for problem in report.problems:
+        click.echo(f"problem: {problem}", err=True)
+    if report.problems:
+        click.echo(f"{root}: {len(report.problems)} problem(s)", err=True)
+        raise SystemExit(1)
+    click.echo(
+        f"ok: {root} — {report.episodes} episode(s), {report.frames} frames, {report.videos} video file(s) checked"
+    )
