@@ -52,7 +52,10 @@ class QueuedObserver(TickObserver):
         if not flush_interval_s > 0:
             raise ROSConfigError(f"must be positive, got {flush_interval_s}", field="flush_interval_s")
         self._items: deque[tuple[int, Any, Any]] = deque()
-        self._ticks_queued = 0
+        # Single-writer counters (no lock on the tick path): appended and dropped by the tick
+        # thread, taken by the worker.
+        self._appended = 0
+        self._taken = 0
         self._max_queue = max_queue
         self._wake_at = max_queue // 2
         self._flush_interval_s = flush_interval_s
@@ -75,12 +78,11 @@ class QueuedObserver(TickObserver):
         """Queue a reference to the tick and its world state (O(1); never blocks, never copies)."""
         if self._closing:
             return
-        items = self._items
-        if self._ticks_queued >= self._max_queue:
+        if self.queued >= self._max_queue:
             self._drop_oldest_tick()
-        items.append((_TICK, tick, world))
-        self._ticks_queued += 1
-        if self._ticks_queued == self._wake_at:
+        self._items.append((_TICK, tick, world))
+        self._appended += 1
+        if self.queued == self._wake_at:
             with self._cond:
                 self._cond.notify()
 
@@ -127,7 +129,7 @@ class QueuedObserver(TickObserver):
     @property
     def queued(self) -> int:
         """Ticks waiting for the worker."""
-        return self._ticks_queued
+        return self._appended - self.overflowed - self._taken
 
     def _put(self, item: tuple[int, Any, Any]) -> None:
         with self._cond:
@@ -141,7 +143,6 @@ class QueuedObserver(TickObserver):
             for index, (kind, tick, _world) in enumerate(self._items):
                 if kind == _TICK:
                     del self._items[index]
-                    self._ticks_queued -= 1
                     self.overflowed += 1
                     self.on_overflow(tick)
                     return
@@ -158,7 +159,7 @@ class QueuedObserver(TickObserver):
                         break
                     kind, first, second = self._items.popleft()
                     if kind == _TICK:
-                        self._ticks_queued -= 1
+                        self._taken += 1
                 self._handle(kind, first, second)
             if closing:
                 self._guarded(self.handle_close)

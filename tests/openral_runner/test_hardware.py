@@ -14,6 +14,7 @@ from openral_core import (
     ROSConfigError,
     ROSEStopRequested,
     ROSHardwareError,
+    ROSRuntimeError,
     ROSSafetyViolation,
     ROSStopRequested,
     SafetyEnvelope,
@@ -25,6 +26,7 @@ from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.clock import SystemClock
 from openral_runner.hardware import HardwareRunner
+from openral_runner.observer import TickObserver
 from openral_runner.safety import SafetyClient
 from openral_runner.testing import FakeClock, ScriptedReader
 from openral_world_state import WorldStateAggregator
@@ -709,3 +711,71 @@ def test_a_skill_that_finishes_its_task_ends_the_run_cleanly() -> None:
     assert runner.recent_ticks[-1].withheld_reason == WithheldReason.SKILL_DONE
     assert len(hal.sent) == 2
     assert skill.last_error is None, "a finished task does not latch the skill's error"
+
+
+class EpisodeLog(TickObserver):
+    def __init__(self) -> None:
+        self.events: list[tuple[object, ...]] = []
+        self.closed = 0
+
+    def on_tick(self, tick, world) -> None:
+        self.events.append(("tick", tick.tick_idx, tick.episode_idx, tick.step_idx))
+
+    def on_episode_start(self, episode_idx: int, task: str) -> None:
+        self.events.append(("start", episode_idx, task))
+
+    def on_episode_end(self, episode_idx: int, *, success: bool, keep: bool = True) -> None:
+        self.events.append(("end", episode_idx, success, keep))
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+def test_the_recorder_hears_episodes_first_and_ticks_carry_their_episode_and_step() -> None:
+    clock = FakeClock()
+    recorder = EpisodeLog()
+    runner, _, _ = build(clock, recorder=recorder)
+    other = EpisodeLog()
+    runner.observers.append(other)
+    assert runner.observers[0] is recorder
+    runner.activate()
+    runner.run(1)
+    runner.episode_start("pick")
+    runner.run(2)
+    runner.episode_end(success=True)
+    runner.episode_start("place")
+    runner.run(1)
+    runner.episode_end(success=False, keep=False)
+    runner.deactivate()
+    assert recorder.events == [
+        ("tick", 0, None, None),
+        ("start", 0, "pick"),
+        ("tick", 1, 0, 0),
+        ("tick", 2, 0, 1),
+        ("end", 0, True, True),
+        ("start", 1, "place"),
+        ("tick", 3, 1, 0),
+        ("end", 1, False, False),
+    ]
+    assert other.events == recorder.events
+    assert recorder.closed == 1
+    with pytest.raises(ROSRuntimeError, match="already has a recorder"):
+        runner.attach_recorder(EpisodeLog())
+
+
+def test_an_observer_failing_at_an_episode_boundary_is_detached_and_the_run_goes_on() -> None:
+    class Broken(EpisodeLog):
+        def on_episode_start(self, episode_idx: int, task: str) -> None:
+            raise RuntimeError("disk full")
+
+    clock = FakeClock()
+    runner, hal, _ = build(clock)
+    broken = Broken()
+    runner.observers.append(broken)
+    runner.activate()
+    runner.episode_start("pick")
+    result = runner.run(3)
+    runner.deactivate()
+    assert broken not in runner.observers
+    assert result.n_ticks == 3
+    assert len(hal.sent) == 3
