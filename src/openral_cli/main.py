@@ -6,15 +6,16 @@ import importlib
 import logging
 import math
 import sys
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
 import click
 import structlog
 
-from openral_cli.errors import EXIT_CONFIG, EXIT_OK, EXIT_RUNTIME, EXIT_SIGINT, EXIT_SIGTERM, exit_codes
+from openral_cli.errors import EXIT_CONFIG, EXIT_OK, exit_codes
 from openral_cli.recording import build_recorder, dataset, recording_summary
-from openral_cli.report import format_run_result
+from openral_cli.session import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
 from openral_core import (
@@ -27,21 +28,14 @@ from openral_core import (
 )
 from openral_core.schema import robot_environment_schema_json
 from openral_hal.manifests import load_robot_manifest
-from openral_observability import semconv, tracer
+from openral_observability import semconv
 from openral_observability.logs import OTelLogBridge, add_trace_ids
-from openral_observability.propagation import context_from_env
-from openral_observability.setup import PROTOCOLS, setup
+from openral_observability.setup import PROTOCOLS
 from openral_runner.factory import build_runner
 
 FOXGLOVE_DEFAULT_PORT = 8765
 """Foxglove's conventional WebSocket port."""
 
-_STOP_EXIT_CODES = {
-    StopReason.SIGINT: EXIT_SIGINT,
-    StopReason.SIGTERM: EXIT_SIGTERM,
-    StopReason.FAULTS: EXIT_RUNTIME,
-    StopReason.ESTOP: EXIT_RUNTIME,
-}
 _SUCCESSFUL_STOPS = frozenset({StopReason.MAX_TICKS, StopReason.DURATION, StopReason.SKILL_DONE})
 """How a recorded run may end and still count as a successful episode."""
 _log = structlog.get_logger("openral")
@@ -203,48 +197,38 @@ def deploy(
     """
     debug = bool(ctx.obj["debug"])
     with StopSignals() as signals, exit_codes(debug):
-        telemetry = setup(endpoint=otlp_endpoint, protocol=otlp_protocol, sample_ratio=trace_sample_ratio)
-        try:
-            with tracer().start_as_current_span(
-                semconv.SPAN_CLI_COMMAND,
-                context=context_from_env(),
-                attributes={semconv.ATTR_CLI_COMMAND: "deploy", semconv.ATTR_CLI_CONFIG: str(config_path)},
-            ) as span:
-                env = RobotEnvironment.from_yaml(config_path, field="--config")
-                try:
-                    result = _deploy(
-                        env,
-                        config_path.parent,
-                        max_ticks,
-                        duration,
-                        signals=signals,
-                        quiet=as_json,
-                        foxglove_port=foxglove_port,
-                        mcap_path=mcap_path,
-                        recording=None
-                        if dataset_out is None
-                        else Recording(dataset_out, task or env.task.instruction or "", resume, vcodec),
-                    )
-                except ROSDeadlineMissed as exc:
-                    if exc.run_result is not None:
-                        _print_result(exc.run_result, as_json=as_json, err=not as_json)
-                    raise
-                span.set_attributes(
-                    {semconv.ATTR_RUN_STOP_REASON: result.stop_reason, semconv.ATTR_RUN_TICKS: result.n_ticks}
+        with command_span(
+            "deploy",
+            config_path,
+            otlp_endpoint=otlp_endpoint,
+            otlp_protocol=otlp_protocol,
+            trace_sample_ratio=trace_sample_ratio,
+        ) as span:
+            env = RobotEnvironment.from_yaml(config_path, field="--config")
+            try:
+                result = _deploy(
+                    env,
+                    config_path.parent,
+                    max_ticks,
+                    duration,
+                    signals=signals,
+                    quiet=as_json,
+                    foxglove_port=foxglove_port,
+                    mcap_path=mcap_path,
+                    recording=None
+                    if dataset_out is None
+                    else Recording(dataset_out, task or env.task.instruction or "", resume, vcodec),
                 )
-            _print_result(result, as_json=as_json)
-            code = _exit_code(result.stop_reason)
-        finally:
-            telemetry.shutdown()
+            except ROSDeadlineMissed as exc:
+                if exc.run_result is not None:
+                    print_result(exc.run_result, as_json=as_json, err=not as_json)
+                raise
+            span.set_attributes(
+                {semconv.ATTR_RUN_STOP_REASON: result.stop_reason, semconv.ATTR_RUN_TICKS: result.n_ticks}
+            )
+        print_result(result, as_json=as_json)
+        code = exit_code(result.stop_reason)
     raise SystemExit(code)
-
-
-def _print_result(result: RunResult, *, as_json: bool, err: bool = False) -> None:
-    click.echo(result.model_dump_json(indent=2) if as_json else format_run_result(result), err=err)
-
-
-def _exit_code(stop_reason: StopReason) -> int:
-    return _STOP_EXIT_CODES.get(stop_reason, EXIT_OK)
 
 
 def _deploy(
@@ -260,56 +244,36 @@ def _deploy(
     recording: Recording | None = None,
 ) -> RunResult:
     """Build, start, run and close one deployment; a stop signal at any point unwinds what was started."""
-    runner, skill = build_runner(env, base_dir=base_dir)
-    recorder = None
-    if recording is not None:
-        recorder = build_recorder(env, recording.root, resume=recording.resume, vcodec=recording.vcodec)
-        runner.attach_recorder(recorder)  # closed (the dataset finalized) by runner.deactivate()
-    signals.on_stop(runner.request_stop)
-    # The escape: the robot's torque off even if the main thread is stuck (bounded by StopSignals).
-    signals.on_force(runner.hal.disconnect)
-    sink = None
-    try:
-        signals.check()
+    with ExitStack() as made:  # closes what was made if something after it fails to build
+        recorder = None
+        if recording is not None:
+            recorder = build_recorder(env, recording.root, resume=recording.resume, vcodec=recording.vcodec)
+            made.callback(recorder.close)
+        observers = []
         if foxglove_port is not None or mcap_path is not None:
             # Loaded only when asked for: the bridge imports foxglove-sdk (the 'foxglove' extra).
             bridge = importlib.import_module("openral_runner.bridges.foxglove")
             sink = bridge.FoxgloveSink(port=foxglove_port, mcap_path=mcap_path, image_hz=env.thumbnail_hz or 10.0)
-            runner.observers.append(sink)  # closed by runner.deactivate(), also when activate() rolls back
+            made.callback(sink.close)
+            observers.append(sink)
             if sink.port is not None and not quiet:
                 click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
-        skill.configure()
-        signals.check()
-        skill.activate()
-        runner.activate()  # checks for a stop between its own steps and rolls back
         try:
-            _log.info("running", deployment=env.name, rate_hz=env.rate_hz, skill=env.vla.id, robot=env.hal.robot_id)
-            if recording is not None:
-                runner.episode_start(recording.task)
-            with LiveStatus(runner, sys.stderr, title=env.name):
-                result = runner.run(max_ticks, duration_s=duration)
-            if recording is not None:
-                runner.episode_end(success=result.stop_reason in _SUCCESSFUL_STOPS)
-            return result
+            with running(env, base_dir, signals=signals, recorder=recorder, observers=observers) as runner:
+                _log.info("running", deployment=env.name, rate_hz=env.rate_hz, skill=env.vla.id, robot=env.hal.robot_id)
+                if recording is not None:
+                    runner.episode_start(recording.task)
+                with LiveStatus(runner, sys.stderr, title=env.name):
+                    result = runner.run(max_ticks, duration_s=duration)
+                if recording is not None:
+                    runner.episode_end(success=result.stop_reason in _SUCCESSFUL_STOPS)
+        except ROSStopRequested as exc:
+            _log.info("stopped before the first tick; everything started was closed", reason=exc.reason)
+            return stopped_before_start(env, exc)
         finally:
-            runner.deactivate()
             if recorder is not None and not quiet:
                 click.echo(recording_summary(recorder), err=True)
-    except ROSStopRequested as exc:
-        _log.info("stopped before the first tick; everything started was closed", reason=exc.reason)
-        return RunResult(
-            runner_name=runner.runner_name,
-            skill_id=runner.skill_id,
-            rate_hz=runner.rate_hz,
-            n_ticks=0,
-            stop_reason=StopReason(exc.reason),
-        )
-    finally:
-        skill.shutdown()
-        if sink is not None:
-            sink.close()  # idempotent; here for runs that never reached activate()
-        if recorder is not None:
-            recorder.close()  # idempotent; a run that never started leaves no episode
+    return result
 
 
 @cli.command()

@@ -56,6 +56,8 @@ FAULT_REASONS: Final = frozenset(reason for reason in WithheldReason if reason.i
 """Withheld reasons that count towards ``max_consecutive_failures``."""
 
 _RECENT_TICKS: Final = 4096
+_PER_RUN_STOPS: Final = frozenset({StopReason.STOP_REQUESTED, StopReason.SKILL_DONE})
+"""Stop reasons that end one ``run()`` only; signals, faults and e-stops stay until ``deactivate()``."""
 
 
 class InferenceRunnerBase(ABC):
@@ -162,7 +164,9 @@ class InferenceRunnerBase(ABC):
         """Ask ``run()`` to finish the current tick and return. Safe from signal handlers and threads.
 
         A request made before ``run()`` (during ``activate()``, say) is kept: start-up rolls back
-        and ``run()`` returns at once. ``deactivate()`` clears it.
+        and ``run()`` returns at once. A plain stop request or the skill's "done" ends that one
+        run, and the next ``run()`` (the next episode) ticks again; a signal, fault or e-stop
+        stays until ``deactivate()``.
         """
         if self._stop_reason is None:
             self._stop_reason = StopReason(reason)
@@ -418,6 +422,8 @@ class InferenceRunnerBase(ABC):
         while True:
             if self._stop_reason is not None:
                 stop_reason = self._stop_reason
+                if stop_reason in _PER_RUN_STOPS:
+                    self._stop_reason = None  # answered by this run; the next run() starts afresh
                 break
             if max_ticks is not None and n >= max_ticks:
                 break

@@ -225,10 +225,10 @@ def test_calibrate_rejects_unknown_joint(tmp_path: Path) -> None:
     ],
 )
 def test_stop_reasons_map_to_exit_codes(reason: str, code: int) -> None:
-    from openral_cli.main import _exit_code  # noqa: PLC0415
+    from openral_cli.session import exit_code  # noqa: PLC0415
     from openral_core import StopReason  # noqa: PLC0415
 
-    assert _exit_code(StopReason(reason)) == code
+    assert exit_code(StopReason(reason)) == code
 
 
 def test_validate_refuses_a_missing_video_file_that_deploy_would_fail_on(tmp_path: Path) -> None:

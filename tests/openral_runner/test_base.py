@@ -11,6 +11,7 @@ from openral_core import (
     ROSConfigError,
     ROSDeadlineMissed,
     ROSRuntimeError,
+    StopReason,
     WithheldReason,
 )
 from openral_runner.base import InferenceRunnerBase
@@ -258,3 +259,19 @@ def test_standalone_tick_applies_policy(clock: FakeClock) -> None:
         runner.tick()
     assert info.value.run_result is None
     assert runner.sent == []
+
+
+def test_a_plain_stop_ends_one_run_and_a_signal_stop_stays_until_deactivate() -> None:
+    runner = TimedRunner(FakeClock())
+    _made.append(runner)
+    runner.activate()
+    runner.request_stop()
+    assert runner.run(5).n_ticks == 0
+    assert runner.run(5).n_ticks == 5  # the next episode ticks again
+    runner.request_stop(StopReason.SIGINT)
+    assert runner.run(5).stop_reason == StopReason.SIGINT
+    assert runner.run(5).n_ticks == 0
+    runner.deactivate()
+    runner.activate()
+    assert runner.run(2).n_ticks == 2
+    runner.deactivate()
