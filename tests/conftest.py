@@ -179,6 +179,7 @@ class DeployProcess:
             command = [sys.executable, "-m", "openral_cli", *args]
         self.proc = subprocess.Popen(
             command,
+            stdin=subprocess.DEVNULL,  # no terminal: a recording's key reader sees end of input
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

@@ -14,6 +14,7 @@ import click
 import structlog
 
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, exit_codes
+from openral_cli.record import record
 from openral_cli.recording import build_recorder, dataset, recording_summary
 from openral_cli.session import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.signals import StopSignals
@@ -352,6 +353,7 @@ def calibrate(
 
 
 cli.add_command(dataset)
+cli.add_command(record)
 
 
 def main() -> None:
