@@ -13,8 +13,10 @@ import contextlib
 import os
 import threading
 from collections import deque
+from collections.abc import Callable
 from enum import StrEnum
 from fractions import Fraction
+from functools import partial
 from pathlib import Path
 from typing import Any, Final
 
@@ -36,6 +38,8 @@ CODEC_OPTIONS: Final[dict[str, dict[str, str]]] = {
     # No B-frames: every frame decodes on its own timeline, and Foxglove can show the stream.
     "h264": {"preset": "veryfast", "tune": "zerolatency", "g": "2", "crf": "23", "bf": "0"},
 }
+ENCODE_NICENESS: Final = 10
+"""Niceness of the encoding threads (higher: lower priority than the tick and capture threads)."""
 _PYAV_CODEC: Final = {"libsvtav1": "libsvtav1", "h264": "libx264"}
 _INPUT_FORMAT: Final = {
     FrameEncoding.RGB8: "rgb24",
@@ -61,6 +65,48 @@ def supported_codecs() -> list[str]:
     return sorted(CODEC_OPTIONS)
 
 
+class EncodeWorker:
+    """A long-lived thread that encodes one camera, episode after episode.
+
+    One thread for the whole recording, not one per episode: each new thread gets its own malloc
+    arena, and an encoder's large buffers left in a new arena every episode make the process grow.
+    Jobs run in the order they were submitted.
+    """
+
+    def __init__(self, name: str) -> None:
+        self._jobs: deque[Callable[[], None]] = deque()
+        self._cond = threading.Condition()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, job: Callable[[], None]) -> None:
+        with self._cond:
+            self._jobs.append(job)
+            self._cond.notify()
+
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Run what is queued, then stop. Idempotent."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        # Encoding yields the CPU to the tick thread: this thread, and the codec's own threads
+        # (started from it, so they inherit its niceness), run at a lower priority.
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), ENCODE_NICENESS)
+        while True:
+            with self._cond:
+                while not self._jobs and not self._closed:
+                    self._cond.wait()
+                if not self._jobs:
+                    return
+                job = self._jobs.popleft()
+            job()
+
+
 class StreamingVideoEncoder:
     """Encodes one camera of one episode into ``path`` as frames arrive.
 
@@ -72,6 +118,7 @@ class StreamingVideoEncoder:
         vcodec: ``libsvtav1`` or ``h264``.
         max_pending: Frames held for the encoder before new ones are repeated instead.
         overflow: What to do when the encoder falls behind.
+        worker: The camera's encoding thread; without one the encoder starts its own and stops it when done.
 
     Raises:
         ROSConfigError: An unknown codec, or a size the codec cannot encode.
@@ -87,6 +134,7 @@ class StreamingVideoEncoder:
         vcodec: str = "libsvtav1",
         max_pending: int = 64,
         overflow: OverflowPolicy = OverflowPolicy.REPEAT,
+        worker: EncodeWorker | None = None,
     ) -> None:
         if vcodec not in CODEC_OPTIONS:
             raise ROSConfigError(
@@ -103,10 +151,9 @@ class StreamingVideoEncoder:
         self.vcodec = vcodec
         self.overflow = OverflowPolicy(overflow)
         self._max_pending = max_pending
-        self._pending: deque[SensorFrame | None] = deque()
+        self._lock = threading.Lock()
         self._pixels_pending = 0
-        self._cond = threading.Condition()
-        self._finishing = False
+        self._stopped = False
         self._error: BaseException | None = None
         self.frames_written = 0
         self.repeated = 0
@@ -119,8 +166,8 @@ class StreamingVideoEncoder:
         stream.codec_context.time_base = Fraction(1, fps)
         self._stream: Any = stream
         self._last: Any = None
-        self._thread = threading.Thread(target=self._run, name=f"openral-encode-{path.stem}", daemon=True)
-        self._thread.start()
+        self._own_worker = worker is None
+        self._worker = worker or EncodeWorker(f"openral-encode-{path.stem}")
 
     @property
     def pending(self) -> int:
@@ -132,8 +179,11 @@ class StreamingVideoEncoder:
 
         Returns:
             ``True`` if the frame itself will be encoded, ``False`` if a repeat took its place.
+
+        Raises:
+            ROSRuntimeError: An earlier frame failed to encode.
         """
-        with self._cond:
+        with self._lock:
             if self._error is not None:
                 raise ROSRuntimeError(f"video encoder for {self.path.name} failed: {self._error}") from self._error
             if frame is not None and self._pixels_pending >= self._max_pending:
@@ -144,9 +194,8 @@ class StreamingVideoEncoder:
                 self.repeated += 1
             else:
                 self._pixels_pending += 1
-            self._pending.append(frame)
-            self._cond.notify()
-            return frame is not None
+        self._worker.submit(partial(self._encode_one, frame))
+        return frame is not None
 
     def finish(self) -> int:
         """Encode what is queued, flush the encoder, close and sync the file.
@@ -157,71 +206,76 @@ class StreamingVideoEncoder:
         Raises:
             ROSRuntimeError: Encoding failed.
         """
-        with self._cond:
-            self._finishing = True
-            self._cond.notify()
-        self._thread.join()
+        done = threading.Event()
+        self._worker.submit(partial(self._flush, done))  # on the camera's thread, after every frame
+        done.wait()
+        self._release_worker()
         if self._error is not None:
             self._close_quietly()
             raise ROSRuntimeError(f"video encoder for {self.path.name} failed: {self._error}") from self._error
-        for packet in self._stream.encode():
-            self._container.mux(packet)
-        self._container.close()
         sync_file(self.path)
         return self.frames_written
 
+    def _flush(self, done: threading.Event) -> None:
+        try:
+            if self._error is None:
+                for packet in self._stream.encode():
+                    self._container.mux(packet)
+                self._container.close()
+        except Exception as exc:
+            self._error = exc
+        finally:
+            done.set()
+
     def abort(self) -> None:
         """Stop without finishing the file (the episode is discarded)."""
-        with self._cond:
-            self._finishing = True
-            self._pending.clear()
-            self._cond.notify()
-        self._thread.join()
+        self._stopped = True
+        done = threading.Event()
+        self._worker.submit(done.set)
+        done.wait()
+        self._release_worker()
         self._close_quietly()
+
+    def _release_worker(self) -> None:
+        if self._own_worker:
+            self._worker.close()
 
     def _close_quietly(self) -> None:
         with contextlib.suppress(Exception):
             self._container.close()
 
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._pending and not self._finishing:
-                    self._cond.wait()
-                if not self._pending:
-                    return
-                frame = self._pending.popleft()
-            try:
+    def _encode_one(self, frame: SensorFrame | None) -> None:
+        try:
+            if not self._stopped and self._error is None:
                 self._encode(frame)
-            except Exception as exc:  # reported by add() and finish()
-                with self._cond:
-                    self._error = exc
-                    self._pending.clear()
-                return
-            finally:
-                if frame is not None:
-                    with self._cond:
-                        self._pixels_pending -= 1
+        except Exception as exc:  # reported by add() and finish()
+            self._error = exc
+        finally:
+            if frame is not None:
+                with self._lock:
+                    self._pixels_pending -= 1
 
     def _encode(self, frame: SensorFrame | None) -> None:
         if frame is None:
             video_frame = self._last if self._last is not None else self._black()
         else:
             video_frame = self._convert(frame)
-            self._last = video_frame
-        out = av.VideoFrame.from_ndarray(video_frame, format="rgb24")
-        out.pts = self.frames_written
-        for packet in self._stream.encode(out):
+        self._last = video_frame
+        # The encoder takes its own reference to the picture when the frame is sent, with the pts
+        # of that moment: a repeat re-sends the same picture with the next pts.
+        video_frame.pts = self.frames_written
+        for packet in self._stream.encode(video_frame):
             self._container.mux(packet)
         self.frames_written += 1
 
-    def _convert(self, frame: SensorFrame) -> np.ndarray:
+    def _convert(self, frame: SensorFrame) -> Any:
+        """The frame as a picture of the video's size and pixel format (one copy in, one scale)."""
         fmt = _INPUT_FORMAT.get(frame.encoding)
         if fmt is None:
             raise ROSRuntimeError(f"frames encoded as {frame.encoding} cannot be recorded as video")
         source = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame.as_array()), format=fmt)
-        rgb: np.ndarray = source.reformat(width=self.width, height=self.height, format="rgb24").to_ndarray()
-        return rgb
+        return source.reformat(width=self.width, height=self.height, format="yuv420p")
 
-    def _black(self) -> np.ndarray:
-        return np.zeros((self.height, self.width, 3), np.uint8)
+    def _black(self) -> Any:
+        black = av.VideoFrame.from_ndarray(np.zeros((self.height, self.width, 3), np.uint8), format="rgb24")
+        return black.reformat(format="yuv420p")

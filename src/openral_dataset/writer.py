@@ -22,7 +22,7 @@ import structlog
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SensorFrame
 from openral_dataset import layout, schema, stats
-from openral_dataset.video import OverflowPolicy, StreamingVideoEncoder
+from openral_dataset.video import EncodeWorker, OverflowPolicy, StreamingVideoEncoder
 
 try:
     import pyarrow as pa
@@ -102,6 +102,7 @@ class LeRobotDatasetSink:
         self.features = schema.features(self.joint_names, self.cameras, fps=fps, vcodec=vcodec)
         self._arrow = schema.arrow_schema(self.features)
         self._episode: _Episode | None = None
+        self._workers: dict[str, EncodeWorker] = {}
         self._tasks: dict[str, int] = {}
         self._stats: list[dict[str, dict[str, np.ndarray]]] = []
         self._merged: dict[str, dict[str, np.ndarray]] = {}
@@ -247,10 +248,18 @@ class LeRobotDatasetSink:
             height=cam.height,
             vcodec=self.vcodec,
             overflow=self.overflow,
+            worker=self._worker(cam.sensor_id),
         )
         for _ in range(episode.unsized.pop(cam.sensor_id, 0)):
             encoder.add(None)
         return encoder
+
+    def _worker(self, camera: str) -> EncodeWorker:
+        """The camera's encoding thread, started once for the whole recording."""
+        worker = self._workers.get(camera)
+        if worker is None:
+            worker = self._workers[camera] = EncodeWorker(f"openral-encode-{camera}")
+        return worker
 
     def _size_camera(self, index: int, frame: SensorFrame) -> schema.CameraSpec:
         """Fix a camera's video size from its first frame (even, as 4:2:0 video needs)."""
@@ -294,9 +303,12 @@ class LeRobotDatasetSink:
         return EpisodeSummary(episode.idx, frames, episode.task, True, repeated, time.perf_counter() - started)
 
     def close(self) -> None:
-        """Discard an episode still open and remove the staging area."""
+        """Discard an episode still open, stop the encoding threads and remove the staging area."""
         if self._episode is not None:
             self.end_episode(keep=False)
+        for worker in self._workers.values():
+            worker.close()
+        self._workers.clear()
         staging = self.root / layout.STAGING_DIR
         if staging.exists():
             shutil.rmtree(staging, ignore_errors=True)
