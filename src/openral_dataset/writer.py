@@ -22,7 +22,7 @@ import structlog
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SensorFrame
 from openral_dataset import layout, schema, stats
-from openral_dataset.video import EncodeWorker, OverflowPolicy, StreamingVideoEncoder
+from openral_dataset.video import EncoderProcess, OverflowPolicy, StreamingVideoEncoder
 
 try:
     import pyarrow as pa
@@ -102,7 +102,7 @@ class LeRobotDatasetSink:
         self.features = schema.features(self.joint_names, self.cameras, fps=fps, vcodec=vcodec)
         self._arrow = schema.arrow_schema(self.features)
         self._episode: _Episode | None = None
-        self._workers: dict[str, EncodeWorker] = {}
+        self._processes: dict[str, EncoderProcess] = {}
         self._tasks: dict[str, int] = {}
         self._stats: list[dict[str, dict[str, np.ndarray]]] = []
         self._merged: dict[str, dict[str, np.ndarray]] = {}
@@ -243,23 +243,26 @@ class LeRobotDatasetSink:
             cam = self._size_camera(index, frame)
         encoder = episode.encoders[cam.sensor_id] = StreamingVideoEncoder(
             episode.folder / f"{cam.sensor_id}.mp4",
+            self._encoder_process(cam, frame),
             fps=self.fps,
             width=cam.width,
             height=cam.height,
             vcodec=self.vcodec,
             overflow=self.overflow,
-            worker=self._worker(cam.sensor_id),
         )
         for _ in range(episode.unsized.pop(cam.sensor_id, 0)):
             encoder.add(None)
         return encoder
 
-    def _worker(self, camera: str) -> EncodeWorker:
-        """The camera's encoding thread, started once for the whole recording."""
-        worker = self._workers.get(camera)
-        if worker is None:
-            worker = self._workers[camera] = EncodeWorker(f"openral-encode-{camera}")
-        return worker
+    def _encoder_process(self, cam: schema.CameraSpec, frame: SensorFrame | None) -> EncoderProcess:
+        """The camera's encoder process, started once for the whole recording (slots sized from its frames)."""
+        process = self._processes.get(cam.sensor_id)
+        if process is None:
+            slot_bytes = cam.width * cam.height * 4
+            if frame is not None:
+                slot_bytes = max(slot_bytes, frame.as_array().nbytes)
+            process = self._processes[cam.sensor_id] = EncoderProcess(cam.sensor_id, slot_bytes=slot_bytes)
+        return process
 
     def _size_camera(self, index: int, frame: SensorFrame) -> schema.CameraSpec:
         """Fix a camera's video size from its first frame (even, as 4:2:0 video needs)."""
@@ -303,12 +306,12 @@ class LeRobotDatasetSink:
         return EpisodeSummary(episode.idx, frames, episode.task, True, repeated, time.perf_counter() - started)
 
     def close(self) -> None:
-        """Discard an episode still open, stop the encoding threads and remove the staging area."""
+        """Discard an episode still open, stop the encoder processes and remove the staging area."""
         if self._episode is not None:
             self.end_episode(keep=False)
-        for worker in self._workers.values():
-            worker.close()
-        self._workers.clear()
+        for process in self._processes.values():
+            process.close()
+        self._processes.clear()
         staging = self.root / layout.STAGING_DIR
         if staging.exists():
             shutil.rmtree(staging, ignore_errors=True)
