@@ -15,7 +15,7 @@ import structlog
 
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, exit_codes
 from openral_cli.record import record
-from openral_cli.recording import build_recorder, dataset, recording_summary
+from openral_cli.recording import build_recorder, dataset, recording_summary, replay
 from openral_cli.session import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
@@ -354,6 +354,7 @@ def calibrate(
 
 cli.add_command(dataset)
 cli.add_command(record)
+cli.add_command(replay)
 
 
 def main() -> None:

@@ -12,7 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import click
+from PIL import Image
 
+from openral_cli.errors import exit_codes
 from openral_core import RobotEnvironment, ROSConfigError
 from openral_hal.manifests import load_robot_manifest
 
@@ -78,3 +80,36 @@ def check(root: Path, no_video: bool) -> None:
     click.echo(
         f"ok: {root} — {report.episodes} episode(s), {report.frames} frames, {report.videos} video file(s) checked"
     )
+
+
+@click.command()
+@click.option("--frame", "frame_path", required=True, metavar="DIR/EPISODE/FRAME", help="The row to show.")
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=Path(),
+    show_default=True,
+    help="Where the camera frames are written (PNG).",
+)
+@click.pass_context
+def replay(ctx: click.Context, frame_path: str, out: Path) -> None:
+    """Show one recorded row: its tick (state, actions, timings, stamps, trace id) and its camera frames."""
+    with exit_codes(bool(ctx.obj["debug"])):
+        lookup = importlib.import_module("openral_dataset.replay")
+        root, episode, frame = lookup.parse_frame_path(frame_path)
+        found = lookup.lookup_frame(root, episode, frame)
+        for name, value in found.row.items():
+            click.echo(f"{name:<32} {_show(value)}")
+        out.mkdir(parents=True, exist_ok=True)
+        for camera, pixels in found.images.items():
+            target = out / f"{camera}_episode{episode}_frame{frame}.png"
+            Image.fromarray(pixels).save(target)
+            click.echo(f"{'image ' + camera:<32} {target}")
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_show(v) for v in value) + "]"
+    return str(value)

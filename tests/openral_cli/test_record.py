@@ -192,3 +192,42 @@ def test_sigkill_in_episode_two_leaves_episode_one_and_resume_fills_the_gap(
     first = pq.read_table(layout.data_file(out, 0)).column("index").to_pylist()
     second = pq.read_table(layout.data_file(out, 1)).column("index").to_pylist()
     assert second[0] == first[-1] + 1  # no index gap
+
+
+@pytest.mark.parametrize(("on_stop", "kept"), [("keep", 2), ("discard", 1)])
+def test_ctrl_c_keeps_or_discards_the_episode_under_way_and_exits_130(
+    deploy_process,
+    deployment,
+    tmp_path: Path,
+    on_stop: str,
+    kept: int,
+) -> None:
+    config = deployment(twin_camera=False)
+    out = tmp_path / "ds"
+    proc = deploy_process(
+        [
+            "record",
+            "--config",
+            str(config),
+            "--dataset-out",
+            str(out),
+            "--vcodec",
+            "h264",
+            "--episodes",
+            "5",
+            "--episode-time-s",
+            "1.0",
+            "--reset-time-s",
+            "0",
+            "--on-stop",
+            on_stop,
+        ]
+    )
+    proc.wait_for("episode committed")
+    proc.wait_for("recording episode              episode=1")
+    proc.signal_group(signal.SIGINT)
+    code, _ = proc.finish(timeout=60)
+    assert code == 130, proc.stderr
+    report = check_dataset(out)
+    assert report.problems == []
+    assert report.episodes == kept

@@ -165,3 +165,31 @@ def test_resume_continues_the_index_and_refuses_a_different_robot(tmp_path: Path
     assert (report.episodes, report.frames) == (2, 9)
     with pytest.raises(ROSConfigError, match="features differ"):
         LeRobotDatasetSink(tmp_path / "ds", fps=FPS, robot_type="x", joint_names=["a"], resume=True)
+
+
+def test_replay_finds_a_rows_tick_and_the_frame_the_skill_saw(tmp_path: Path) -> None:
+    from click.testing import CliRunner  # noqa: PLC0415
+
+    from openral_cli.main import cli  # noqa: PLC0415
+    from openral_dataset.replay import lookup_frame  # noqa: PLC0415
+
+    clock = FakeClock()
+    runner, _ = _runner(tmp_path, clock)
+    runner.activate()
+    runner.episode_start("pick")
+    runner.run(6)
+    runner.episode_end(success=True)
+    runner.deactivate()
+    root = tmp_path / "ds"
+    found = lookup_frame(root, 0, 4)
+    assert found.row["frame_index"] == 4
+    assert read_number(found.images["front"]) == found.row["openral.front.seq"]
+    assert found.row["openral.tick_idx"] == runner.recent_ticks[4].tick_idx
+
+    result = CliRunner().invoke(cli, ["replay", "--frame", f"{root}/0/4", "--out", str(tmp_path / "png")])
+    assert result.exit_code == 0, result.output
+    assert f"openral.front.seq                {found.row['openral.front.seq']}" in result.output
+    assert (tmp_path / "png" / "front_episode0_frame4.png").exists()
+    missing = CliRunner().invoke(cli, ["replay", "--frame", f"{root}/0/6"])
+    assert missing.exit_code == 2
+    assert "0..5" in missing.output
