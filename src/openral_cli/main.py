@@ -36,6 +36,8 @@ from openral_runner.factory import build_runner
 
 FOXGLOVE_DEFAULT_PORT = 8765
 """Foxglove's conventional WebSocket port."""
+FOXGLOVE_IMAGE_HZ = 10.0
+"""Camera thumbnails per second for the Foxglove view when the deployment sets no ``thumbnail_hz``."""
 
 _SUCCESSFUL_STOPS = frozenset({StopReason.MAX_TICKS, StopReason.DURATION, StopReason.SKILL_DONE})
 """How a recorded run may end and still count as a successful episode."""
@@ -252,9 +254,11 @@ def _deploy(
             made.callback(recorder.close)
         observers = []
         if foxglove_port is not None or mcap_path is not None:
+            if not env.thumbnail_hz:  # the view shows the runner's camera thumbnails
+                env = env.model_copy(update={"thumbnail_hz": FOXGLOVE_IMAGE_HZ})
             # Loaded only when asked for: the bridge imports foxglove-sdk (the 'foxglove' extra).
             bridge = importlib.import_module("openral_runner.bridges.foxglove")
-            sink = bridge.FoxgloveSink(port=foxglove_port, mcap_path=mcap_path, image_hz=env.thumbnail_hz or 10.0)
+            sink = bridge.FoxgloveSink(port=foxglove_port, mcap_path=mcap_path)
             made.callback(sink.close)
             observers.append(sink)
             if sink.port is not None and not quiet:

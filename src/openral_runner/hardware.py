@@ -43,7 +43,7 @@ from openral_runner.observer import TickObserver
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import NullSafetyClient, SafetyClient
 from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
-from openral_runner.thumbnails import ThumbnailPublisher
+from openral_runner.thumbnails import ThumbnailPublisher, ThumbnailSubscriber
 from openral_runner.tick_context import TickContext
 from openral_world_state import WorldStateAggregator
 
@@ -68,8 +68,9 @@ class HardwareRunner(InferenceRunnerBase):
         task: Instruction placed in every world state.
         realtime: Real-time knobs applied to the calling thread at activation.
         sync: Cameras read as one set with bounded capture skew each tick.
-        thumbnail_hz: Rate of the small JPEG thumbnails of each camera for dashboards, encoded
-            off the tick thread; 0 disables them (as it does without cameras).
+        thumbnail_hz: Rate of the small JPEG thumbnails of each camera, encoded once off the tick
+            thread for the dashboard span and every observer that subscribes (the Foxglove view);
+            0 disables them (as it does without cameras).
         recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
             observer, hears every ``episode_start``/``episode_end`` and is closed with the runner.
         **base_kwargs: ``InferenceRunnerBase`` options (rate, policy, clock, ...).
@@ -104,6 +105,8 @@ class HardwareRunner(InferenceRunnerBase):
         if not (math.isfinite(thumbnail_hz) and thumbnail_hz >= 0):
             raise ROSConfigError(f"must be a finite number >= 0, got {thumbnail_hz}", field="thumbnail_hz")
         self.thumbnails = ThumbnailPublisher(thumbnail_hz) if self.sensor_readers and thumbnail_hz > 0 else None
+        if self.thumbnails is not None:
+            self.observers.append(self.thumbnails)  # fed the frames the skill saw, like any observer
         synced = set(sync.sensors) if sync is not None else set()
         clock_ns = self._clock.now_ns
         self._synced_readers = [
@@ -163,8 +166,10 @@ class HardwareRunner(InferenceRunnerBase):
                 stack.callback(self._safe_close, f"sensor {reader.sensor_id}", reader.close)
             self._check_stop()
             if self.thumbnails is not None:
-                self.thumbnails.start()
-                stack.callback(self._safe_close, "thumbnails", self.thumbnails.stop)
+                self.thumbnails.start()  # stopped by its observer close below
+                for observer in self.observers:
+                    if isinstance(observer, ThumbnailSubscriber):
+                        self.thumbnails.subscribe(observer.on_thumbnail)  # one JPEG encode for every viewer
             for observer in self.observers:
                 stack.callback(self._safe_close, f"observer {type(observer).__name__}", observer.close)
             super().activate()  # starts the telemetry worker thread
@@ -435,8 +440,6 @@ class HardwareRunner(InferenceRunnerBase):
 
     def _accept_frame(self, frame: SensorFrame) -> None:
         self.aggregator.update_frame(frame)  # a frame also clears the sensor's error
-        if self.thumbnails is not None:
-            self.thumbnails.offer(frame)
 
     def _read_sensor(self, reader: SensorReader) -> None:
         """Move one reader's latest frame into the world state, or its verdict (stale, failed) onto it."""

@@ -1,11 +1,13 @@
-"""Per-camera dashboard thumbnails: small JPEGs at ``thumbnail_hz``, encoded off the tick thread.
+"""Per-camera thumbnails: small JPEGs at ``thumbnail_hz``, encoded once, off the tick thread, for every viewer.
 
-The tick thread only hands over a reference to the latest frame when a camera's next
-thumbnail is due (O(1), no pixels touched). A worker thread downscales to at most 640×480,
-encodes JPEG and emits one ``sensors.thumbnail`` span carrying it (base64), which the
-dashboard and exporters read. Each camera keeps an absolute schedule: after a stall the next
-thumbnail is a full period later, never a burst. If encoding falls behind, older pending
-frames are replaced by newer ones rather than queued.
+:class:`ThumbnailPublisher` is a tick observer. On the tick thread it only takes a reference to
+a camera's frame when that camera's next thumbnail is due (O(1), no pixels touched). A worker
+thread downscales to at most 640×480 and encodes JPEG once (a JPEG frame that small passes
+through as it is), then hands the thumbnail to every subscriber: a ``sensors.thumbnail`` span
+carrying it (base64) for dashboards and exporters, and any observer that implements
+:class:`ThumbnailSubscriber` (the Foxglove view). Each camera keeps an absolute schedule: after a
+stall the next thumbnail is a full period later, never a burst. If encoding falls behind, older
+pending frames are replaced by newer ones rather than queued.
 """
 
 from __future__ import annotations
@@ -16,12 +18,17 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
+import structlog
 from PIL import Image
 
-from openral_core import FrameEncoding, SensorFrame
+from openral_core import FrameEncoding, SensorFrame, TickResult, WorldState
 from openral_observability import semconv, tracer
+from openral_runner.observer import TickObserver
+
+_log = structlog.get_logger(__name__)
 
 MAX_WIDTH = 640
 MAX_HEIGHT = 480
@@ -44,23 +51,42 @@ class Thumbnail:
     width: int
     height: int
     jpeg: bytes
+    frame_id: str | None = None
+
+
+@runtime_checkable
+class ThumbnailSubscriber(Protocol):
+    """An observer that also takes the runner's camera thumbnails (called on the thumbnail worker thread)."""
+
+    def on_thumbnail(self, thumb: Thumbnail) -> None:
+        """Take one thumbnail; must not block for long."""
 
 
 def encode_thumbnail(frame: SensorFrame, *, quality: int = 70) -> Thumbnail | None:
-    """Downscale ``frame`` to fit 640×480 and JPEG-encode it; ``None`` for encodings it cannot show."""
-    convert = _TO_RGB.get(frame.encoding)
-    if convert is None or frame.data is None:
+    """Downscale ``frame`` to fit 640×480 and JPEG-encode it; ``None`` for encodings it cannot show.
+
+    A JPEG frame that already fits passes through untouched; larger JPEG and PNG frames are decoded first.
+    """
+    if frame.data is None:
         return None
-    pixels = convert(frame.as_array())
-    image = Image.fromarray(np.ascontiguousarray(pixels))
+    if frame.encoding in (FrameEncoding.JPEG, FrameEncoding.PNG):
+        data = frame.data_bytes()
+        if frame.encoding is FrameEncoding.JPEG and frame.width <= MAX_WIDTH and frame.height <= MAX_HEIGHT:
+            return Thumbnail(frame.sensor_id, frame.stamp_ns, frame.width, frame.height, data, frame.frame_id)
+        image = Image.open(io.BytesIO(data)).convert("RGB")
+    else:
+        convert = _TO_RGB.get(frame.encoding)
+        if convert is None:
+            return None
+        image = Image.fromarray(np.ascontiguousarray(convert(frame.as_array())))
     image.thumbnail((MAX_WIDTH, MAX_HEIGHT), Image.Resampling.BILINEAR)
     out = io.BytesIO()
     image.save(out, format="JPEG", quality=quality)
-    return Thumbnail(frame.sensor_id, frame.stamp_ns, image.width, image.height, out.getvalue())
+    return Thumbnail(frame.sensor_id, frame.stamp_ns, image.width, image.height, out.getvalue(), frame.frame_id)
 
 
-class ThumbnailPublisher:
-    """Throttles, encodes and emits thumbnails for every camera.
+class ThumbnailPublisher(TickObserver):
+    """Throttles, encodes and hands out thumbnails of every camera the skill sees.
 
     Args:
         rate_hz: Thumbnails per second per camera; 0 disables.
@@ -80,7 +106,7 @@ class ThumbnailPublisher:
         self.rate_hz = rate_hz
         self.period_s = 1.0 / rate_hz if rate_hz > 0 else 0.0
         self.quality = quality
-        self._sink = sink or _emit_span
+        self._sinks: list[Callable[[Thumbnail], None]] = [sink or _emit_span]
         self._clock = clock
         self._due: dict[str, float] = {}
         self._pending: dict[str, SensorFrame] = {}
@@ -90,6 +116,7 @@ class ThumbnailPublisher:
         self._thread: threading.Thread | None = None
         self.encoded = 0
         self.replaced = 0
+        self.sink_errors = 0
 
     @property
     def enabled(self) -> bool:
@@ -112,6 +139,22 @@ class ThumbnailPublisher:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+
+    def subscribe(self, sink: Callable[[Thumbnail], None]) -> None:
+        """Also hand every thumbnail to ``sink`` (on the worker thread). Subscribing twice has no effect."""
+        if sink not in self._sinks:
+            self._sinks.append(sink)
+
+    def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
+        """Offer each frame the skill saw this tick (tick thread; O(1) per camera)."""
+        frames = None if world is None else world.image_frames
+        if frames:
+            for frame in frames.values():
+                self.offer(frame)
+
+    def close(self) -> None:
+        """Stop the worker (a later :meth:`start` restarts it)."""
+        self.stop()
 
     def offer(self, frame: SensorFrame) -> bool:
         """Hand over ``frame`` if its camera's next thumbnail is due (tick thread; O(1)).
@@ -156,7 +199,13 @@ class ThumbnailPublisher:
                     continue
                 self._latest[frame.sensor_id] = thumb
                 self.encoded += 1
-                self._sink(thumb)
+                for sink in list(self._sinks):
+                    try:
+                        sink(thumb)
+                    except Exception as exc:  # one viewer's failure must not starve the others
+                        self.sink_errors += 1
+                        if self.sink_errors == 1:
+                            _log.error("thumbnail subscriber failed; counting further failures", error=repr(exc))
 
 
 def _emit_span(thumb: Thumbnail) -> None:

@@ -8,7 +8,7 @@ import threading
 import numpy as np
 from PIL import Image
 
-from openral_core import FrameEncoding
+from openral_core import FrameEncoding, SensorFrame
 from openral_runner.frame_slot import frame_from_array
 from openral_runner.thumbnails import ThumbnailPublisher, encode_thumbnail
 
@@ -88,3 +88,23 @@ def test_zero_rate_disables() -> None:
     publisher.start()
     assert not publisher.offer(bgr_frame(width=4, height=4))
     publisher.stop()
+
+
+def test_a_small_jpeg_frame_passes_through_and_a_large_one_is_scaled() -> None:
+    small = io.BytesIO()
+    Image.new("RGB", (320, 240), (10, 200, 30)).save(small, format="JPEG")
+    frame = SensorFrame(
+        sensor_id="cam", stamp_ns=1, width=320, height=240, encoding=FrameEncoding.JPEG, data=small.getvalue()
+    )
+    thumb = encode_thumbnail(frame)
+    assert thumb is not None
+    assert thumb.jpeg == small.getvalue()  # not re-encoded
+    large = io.BytesIO()
+    Image.new("RGB", (1280, 960), (10, 200, 30)).save(large, format="PNG")
+    frame = SensorFrame(
+        sensor_id="cam", stamp_ns=1, width=1280, height=960, encoding=FrameEncoding.PNG, data=large.getvalue()
+    )
+    thumb = encode_thumbnail(frame)
+    assert thumb is not None
+    assert (thumb.width, thumb.height) == (640, 480)
+    assert Image.open(io.BytesIO(thumb.jpeg)).format == "JPEG"

@@ -12,9 +12,9 @@ Channels (one schema each; JSON messages carry a JSON Schema, so Foxglove plots 
 - ``/openral/safety`` (JSON ``openral.SafetyEvent``): one message per safety violation
   (``kind="safety_violation"``) and one per withheld action (``kind="action_withheld"``), with
   ``reason``.
-- ``/camera/<sensor_id>/compressed`` (``foxglove.CompressedImage``): JPEG of each camera, at most
-  ``image_hz`` per camera by capture time (downscaled with :func:`encode_thumbnail`; frames that
-  are already JPEG or PNG pass through as they are).
+- ``/camera/<sensor_id>/compressed`` (``foxglove.CompressedImage``): the runner's JPEG thumbnails
+  of each camera (at its ``thumbnail_hz``; encoded once for every viewer, see
+  :mod:`openral_runner.thumbnails`).
 
 Times: a message's log time is the wall-clock time at which its tick was handed to the sink,
 taken as ``time.monotonic_ns()`` plus one offset to ``time.time_ns()`` sampled when the sink is
@@ -24,9 +24,9 @@ and the measurement's own monotonic stamp (joint-state read, frame capture) mapp
 offset for joint states and images.
 
 The tick thread only appends a reference to a bounded queue (the oldest entry is dropped and
-counted when it is full) and, for a camera whose next image is due, puts the frame in that
-camera's latest-frame slot; a worker thread wakes every ``flush_interval_s`` and serialises,
-encodes and logs what accumulated.
+counted when it is full); thumbnails arrive from the runner's thumbnail worker into a
+latest-per-camera slot. A worker thread wakes every ``flush_interval_s`` and serialises and logs
+what accumulated.
 """
 
 from __future__ import annotations
@@ -48,11 +48,11 @@ from openral_core import (
     JointState,
     ROSConfigError,
     ROSDependencyMissing,
-    SensorFrame,
     TickResult,
     WorldState,
 )
-from openral_runner.thumbnails import encode_thumbnail
+from openral_runner.observer import TickObserver
+from openral_runner.thumbnails import Thumbnail
 
 try:
     import foxglove
@@ -139,7 +139,7 @@ _PASS_THROUGH = {FrameEncoding.JPEG: "jpeg", FrameEncoding.PNG: "png"}
 _Item = tuple[TickResult, JointState | None, int]
 
 
-class FoxgloveSink:
+class FoxgloveSink(TickObserver):
     """A tick observer that serves a live Foxglove WebSocket and/or records an MCAP file.
 
     Args:
@@ -147,7 +147,6 @@ class FoxgloveSink:
             ``None`` serves nothing.
         host: Interface the server binds to.
         mcap_path: Record the same channels to this MCAP file. ``None`` records nothing.
-        image_hz: Camera images per second per camera (by capture time); 0 disables images.
         queue_size: Ticks buffered for the worker; when full the oldest is dropped and counted.
         flush_interval_s: How often the worker wakes to publish what was handed over (the live
             view's added latency). The tick thread wakes it early only when the queue is half
@@ -166,7 +165,6 @@ class FoxgloveSink:
         port: int | None = None,
         host: str = "127.0.0.1",
         mcap_path: Path | None = None,
-        image_hz: float = 10.0,
         queue_size: int = 256,
         flush_interval_s: float = 0.02,
         overwrite: bool = False,
@@ -178,8 +176,6 @@ class FoxgloveSink:
             )
         if queue_size < 1:
             raise ROSConfigError(f"queue_size must be at least 1, got {queue_size}", field="queue_size")
-        self.image_hz = image_hz
-        self._image_period_ns = int(1e9 / image_hz) if image_hz > 0 else 0
         self._close_timeout_s = close_timeout_s
         self._flush_interval_s = flush_interval_s
         self._wake_at = max(1, queue_size // 2)
@@ -216,8 +212,7 @@ class FoxgloveSink:
 
             self._cond = threading.Condition()
             self._ticks: deque[_Item] = deque(maxlen=queue_size)
-            self._images: dict[str, tuple[SensorFrame, int]] = {}
-            self._image_due: dict[str, int] = {}
+            self._images: dict[str, tuple[Thumbnail, int]] = {}
             self._closed = False
             self.dropped = 0
             self.images_replaced = 0
@@ -245,21 +240,25 @@ class FoxgloveSink:
     def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
         """Hand one tick over to the worker (tick thread; never blocks on I/O, touches no pixels)."""
         now_ns = time.monotonic_ns()
-        joints = None
-        frames = None
-        if world is not None:
-            joints = world.joint_state
-            frames = world.image_frames
+        joints = None if world is None else world.joint_state
         with self._cond:
             if self._closed:
                 return
             if len(self._ticks) == self._ticks.maxlen:
                 self.dropped += 1
             self._ticks.append((tick, joints, now_ns))
-            if frames and self._image_period_ns:
-                self._offer_images(frames, now_ns)
             if len(self._ticks) == self._wake_at:
                 self._cond.notify()
+
+    def on_thumbnail(self, thumb: Thumbnail) -> None:
+        """Keep a camera's newest thumbnail for the worker (called on the runner's thumbnail thread)."""
+        now_ns = time.monotonic_ns()
+        with self._cond:
+            if self._closed:
+                return
+            if thumb.sensor_id in self._images:
+                self.images_replaced += 1
+            self._images[thumb.sensor_id] = (thumb, now_ns)
 
     def close(self) -> None:
         """Drain what was handed over, finish the MCAP file and stop the server. Idempotent."""
@@ -290,25 +289,6 @@ class FoxgloveSink:
     def __exit__(self, *_exc: object) -> None:
         self.close()
 
-    # -- tick thread helpers ----------------------------------------------------------------
-
-    def _offer_images(self, frames: dict[str, SensorFrame], now_ns: int) -> None:
-        """Put each camera's frame in its slot when its next image is due by capture time (lock held)."""
-        period = self._image_period_ns
-        for sensor_id, frame in frames.items():
-            stamp = frame.stamp_ns
-            due = self._image_due.get(sensor_id)
-            if due is not None and stamp < due:
-                continue
-            # Keep phase while frames arrive on time; after a gap restart from this frame: no burst.
-            if due is None or stamp - due >= period // 2:
-                self._image_due[sensor_id] = stamp + period
-            else:
-                self._image_due[sensor_id] = due + period
-            if sensor_id in self._images:
-                self.images_replaced += 1
-            self._images[sensor_id] = (frame, now_ns)
-
     # -- worker -------------------------------------------------------------------------------
 
     def _run(self) -> None:
@@ -323,8 +303,8 @@ class FoxgloveSink:
                     return
             for item in ticks:
                 self._guarded(self._publish_tick, item)
-            for frame, handed_ns in images.values():
-                self._guarded(self._publish_image, frame, handed_ns)
+            for thumb, handed_ns in images.values():
+                self._guarded(self._publish_image, thumb, handed_ns)
 
     def _guarded(self, publish: Callable[..., None], *args: Any) -> None:
         try:
@@ -397,25 +377,17 @@ class FoxgloveSink:
             )
         self.ticks_published += 1
 
-    def _publish_image(self, frame: SensorFrame, handed_ns: int) -> None:
-        fmt = _PASS_THROUGH.get(frame.encoding)
-        if fmt is not None and frame.data is not None:
-            data = frame.data_bytes()
-        else:
-            thumb = encode_thumbnail(frame)
-            if thumb is None:
-                return
-            data, fmt = thumb.jpeg, "jpeg"
-        channel = self._camera_channels.get(frame.sensor_id)
+    def _publish_image(self, thumb: Thumbnail, handed_ns: int) -> None:
+        channel = self._camera_channels.get(thumb.sensor_id)
         if channel is None:
-            topic = TOPIC_CAMERA.format(sensor_id=frame.sensor_id)
-            channel = self._camera_channels[frame.sensor_id] = CompressedImageChannel(topic, context=self._context)
+            topic = TOPIC_CAMERA.format(sensor_id=thumb.sensor_id)
+            channel = self._camera_channels[thumb.sensor_id] = CompressedImageChannel(topic, context=self._context)
         channel.log(
             CompressedImage(
-                timestamp=_timestamp(frame.stamp_ns + self._offset_ns),
-                frame_id=frame.frame_id or frame.sensor_id,
-                data=data,
-                format=fmt,
+                timestamp=_timestamp(thumb.stamp_ns + self._offset_ns),
+                frame_id=thumb.frame_id or thumb.sensor_id,
+                data=thumb.jpeg,
+                format="jpeg",
             ),
             log_time=handed_ns + self._offset_ns,
         )

@@ -28,6 +28,7 @@ from openral_rskill.testing import ScriptedSkill
 from openral_runner.frame_slot import frame_from_array
 from openral_runner.hardware import HardwareRunner
 from openral_runner.testing import FakeClock, ScriptedReader
+from openral_runner.thumbnails import encode_thumbnail
 from openral_world_state import WorldStateAggregator
 
 EXTRA = "needs the 'foxglove' extra (foxglove-sdk, mcap): uv sync --extra foxglove"
@@ -115,7 +116,7 @@ def test_missing_foxglove_names_the_extra() -> None:
 def test_mcap_has_one_joint_state_and_one_timing_message_per_tick(tmp_path: Path, sink_cls, read_mcap) -> None:
     path = tmp_path / "run.mcap"
     n = 20
-    sink = sink_cls(mcap_path=path, image_hz=10.0)
+    sink = sink_cls(mcap_path=path)
     before_ns = time.time_ns()
     for i in range(n):
         extra = {}
@@ -125,6 +126,9 @@ def test_mcap_has_one_joint_state_and_one_timing_message_per_tick(tmp_path: Path
             extra = {"action_applied": False, "withheld_reason": "deadline", "deadline_missed": True}
         sink.on_tick(make_tick(i, **extra), make_world(i))
     sink.on_tick(make_tick(n), None)  # a tick without a world: timings only
+    for i in (0, 10):  # the runner's thumbnail worker hands over the wrist camera's thumbnails
+        frame = make_world(i).image_frames["wrist"]  # type: ignore[index]
+        sink.on_thumbnail(encode_thumbnail(frame))
     sink.close()
     sink.close()  # idempotent
     after_ns = time.time_ns()
@@ -164,7 +168,7 @@ def test_mcap_has_one_joint_state_and_one_timing_message_per_tick(tmp_path: Path
     joint_ns = [msg["timestamp"]["sec"] * 1_000_000_000 + msg["timestamp"]["nsec"] for msg in joints]
     assert np.diff(joint_ns).tolist() == [STEP_NS] * (n - 1)
 
-    # 20 frames 10 ms apart at 10 Hz: two images are due (capture t=0 and t=100 ms).
+    # Two thumbnails handed over: each is published, or replaced by the newer one before the worker woke.
     images = messages["/camera/wrist/compressed"]
     assert sink.images_published + sink.images_replaced == 2
     assert len(images) == sink.images_published >= 1
@@ -310,3 +314,33 @@ def test_a_runner_observer_records_every_tick_and_closes_at_deactivate(tmp_path:
     assert len(messages["/joint_states"]) == 30
     assert json.loads(messages["/joint_states"][0][2].data)["name"] == joints
     assert messages["/camera/front/compressed"]
+
+
+def test_one_jpeg_encode_serves_the_thumbnail_span_and_the_foxglove_view(tmp_path: Path, sink_cls, read_mcap) -> None:
+    clock = FakeClock()
+    joints = ["j0", "j1", "j2"]
+    skill = ScriptedSkill(joints)
+    skill.configure()
+    skill.activate()
+    runner = HardwareRunner(
+        hal=RecordingHAL(joints, clock_ns=clock.now_ns),
+        skill=skill,
+        aggregator=WorldStateAggregator(sensors=[SensorReaderConfig(sensor_id="front")], clock=clock.now_ns),
+        sensor_readers=[ScriptedReader("front", clock, width=32, height=24)],
+        rate_hz=30.0,
+        clock=clock,
+        thumbnail_hz=1000.0,  # every frame is due: the schedule runs on the real clock
+    )
+    spans: list[object] = []
+    assert runner.thumbnails is not None
+    runner.thumbnails._sinks[0] = spans.append  # the dashboard span sink, observed
+    sink = sink_cls(mcap_path=tmp_path / "view.mcap")
+    runner.observers.append(sink)
+    runner.activate()
+    runner.run(10)
+    runner.deactivate()
+    encoded = runner.thumbnails.encoded
+    assert encoded >= 1
+    assert len(spans) == encoded  # every encoded thumbnail reached the span sink ...
+    assert sink.images_published + sink.images_replaced == encoded  # ... and the view, from the same encode
+    assert len(read_mcap(tmp_path / "view.mcap")["/camera/front/compressed"]) == sink.images_published
