@@ -96,8 +96,15 @@ def _decode_numbers(path: Path) -> list[int]:
         return [read_number(f.to_ndarray(format="rgb24")) for f in container.decode(container.streams.video[0])]
 
 
+def _start(deploy_process, config: Path, out: Path, *args: str):
+    """``openral record`` of ``config`` into ``out`` (H.264, no reset pause unless ``args`` say otherwise)."""
+    return deploy_process(
+        ["record", "--config", str(config), "--dataset-out", str(out), "--vcodec", "h264", "--reset-time-s", "0", *args]
+    )
+
+
 def _record(deploy_process, config: Path, out: Path, *args: str) -> str:
-    proc = deploy_process(["record", "--config", str(config), "--dataset-out", str(out), "--vcodec", "h264", *args])
+    proc = _start(deploy_process, config, out, *args)
     code, _ = proc.finish(timeout=120)
     assert code == 0, proc.stderr
     return proc.stderr
@@ -115,8 +122,6 @@ def test_three_episodes_two_tasks_every_row_shows_the_frame_it_records(deploy_pr
         "2",
         "--episode-time-s",
         "1.0",
-        "--reset-time-s",
-        "0",
         "--task",
         "pick the cube",
         "--task",
@@ -156,23 +161,7 @@ def test_sigkill_in_episode_two_leaves_episode_one_and_resume_fills_the_gap(
 ) -> None:
     config = deployment(twin_camera=False)
     out = tmp_path / "ds"
-    proc = deploy_process(
-        [
-            "record",
-            "--config",
-            str(config),
-            "--dataset-out",
-            str(out),
-            "--vcodec",
-            "h264",
-            "--episodes",
-            "3",
-            "--episode-time-s",
-            "1.0",
-            "--reset-time-s",
-            "0",
-        ]
-    )
+    proc = _start(deploy_process, config, out, "--episodes", "3", "--episode-time-s", "1.0")
     proc.wait_for("episode committed")
     proc.wait_for("episode 2/3")
     proc.wait_for("recording episode              episode=1")
@@ -204,25 +193,7 @@ def test_ctrl_c_keeps_or_discards_the_episode_under_way_and_exits_130(
 ) -> None:
     config = deployment(twin_camera=False)
     out = tmp_path / "ds"
-    proc = deploy_process(
-        [
-            "record",
-            "--config",
-            str(config),
-            "--dataset-out",
-            str(out),
-            "--vcodec",
-            "h264",
-            "--episodes",
-            "5",
-            "--episode-time-s",
-            "1.0",
-            "--reset-time-s",
-            "0",
-            "--on-stop",
-            on_stop,
-        ]
-    )
+    proc = _start(deploy_process, config, out, "--episodes", "5", "--episode-time-s", "1.0", "--on-stop", on_stop)
     proc.wait_for("episode committed")
     proc.wait_for("recording episode              episode=1")
     proc.signal_group(signal.SIGINT)

@@ -36,12 +36,13 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import structlog
+from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import (
     FrameEncoding,
@@ -51,6 +52,8 @@ from openral_core import (
     TickResult,
     WorldState,
 )
+from openral_core.config import validate_model
+from openral_core.config_files import resolve_user_path
 from openral_runner.observer import TickObserver
 from openral_runner.thumbnails import Thumbnail
 
@@ -139,6 +142,19 @@ _PASS_THROUGH = {FrameEncoding.JPEG: "jpeg", FrameEncoding.PNG: "png"}
 _Item = tuple[TickResult, JointState | None, int]
 
 
+class FoxgloveParams(BaseModel):
+    """Parameters of the ``foxglove`` observer in a deployment's ``observers:`` block."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    port: int | None = Field(
+        default=None, ge=0, le=65535, description="Serve a live WebSocket here (0: any free port)."
+    )
+    host: str = Field(default="127.0.0.1", description="Interface the live server binds to.")
+    mcap: str | None = Field(default=None, description="Record the same channels to this MCAP file.")
+    overwrite: bool = Field(default=False, description="Replace an existing MCAP file.")
+
+
 class FoxgloveSink(TickObserver):
     """A tick observer that serves a live Foxglove WebSocket and/or records an MCAP file.
 
@@ -222,6 +238,24 @@ class FoxgloveSink(TickObserver):
             self._thread = threading.Thread(target=self._run, name="openral-foxglove", daemon=True)
             self._thread.start()
             stack.pop_all()
+
+    @classmethod
+    def from_config(
+        cls, params: Mapping[str, Any], *, robot: Any, env: Any, base_dir: Path | None = None
+    ) -> FoxgloveSink:
+        """Plugin constructor (observer ``foxglove``); ``params`` are validated as :class:`FoxgloveParams`.
+
+        A relative ``mcap`` path is resolved against ``base_dir`` (the deployment file's folder).
+        Images come from the runner's thumbnails: give the deployment a ``thumbnail_hz``.
+
+        Raises:
+            ROSConfigError: A wrong parameter (named with the allowed keys), or the port or file cannot be used.
+        """
+        config = validate_model(FoxgloveParams, dict(params), field_prefix="observers[].params")
+        mcap = (
+            None if config.mcap is None else resolve_user_path(config.mcap, base_dir, field="observers[].params.mcap")
+        )
+        return cls(port=config.port, host=config.host, mcap_path=mcap, overwrite=config.overwrite)
 
     # -- what the CLI reads ---------------------------------------------------------------
 

@@ -344,3 +344,37 @@ def test_one_jpeg_encode_serves_the_thumbnail_span_and_the_foxglove_view(tmp_pat
     assert len(spans) == encoded  # every encoded thumbnail reached the span sink ...
     assert sink.images_published + sink.images_replaced == encoded  # ... and the view, from the same encode
     assert len(read_mcap(tmp_path / "view.mcap")["/camera/front/compressed"]) == sink.images_published
+
+
+def test_a_deployment_configures_the_view_in_its_observers_block(tmp_path: Path, sink_cls, read_mcap) -> None:
+    import subprocess  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+
+    deployment = tmp_path / "view.yaml"
+    deployment.write_text(
+        "name: view\nrate_hz: 50\nhal: {robot_id: so101_follower, adapter: null}\nvla: {id: noop}\n"
+        "safety: {client: envelope}\nobservers:\n  - id: foxglove\n    params: {mcap: out/run.mcap}\n"
+    )
+    (tmp_path / "out").mkdir()
+    run = subprocess.run(
+        [sys.executable, "-m", "openral_cli", "deploy", "--config", str(deployment), "--max-ticks", "20", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+        check=False,
+    )
+    assert run.returncode == 0, run.stderr
+    ticks = read_mcap(tmp_path / "out" / "run.mcap")["/openral/tick"]
+    assert len(ticks) == 20
+
+    deployment.write_text(deployment.read_text().replace("mcap: out/run.mcap", "mcap: x.mcap, fps: 3"))
+    bad = subprocess.run(
+        [sys.executable, "-m", "openral_cli", "validate", str(deployment)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert bad.returncode == 2
+    assert "fps" in bad.stderr
