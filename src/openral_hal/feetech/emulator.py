@@ -5,7 +5,8 @@ emulator serves the master from a daemon thread and :attr:`ServoBusEmulator.port
 slave device, which pyserial opens exactly like a USB adapter. Each servo has a 256-byte
 control table; with torque enabled its present position moves toward the goal at a servo-like
 speed (default 3000 ticks/s, about 4.6 rad/s, the STS3215's no-load speed) and reports its
-present speed; with torque off it stays where it is put (:meth:`ServoBusEmulator.move_by_hand`).
+present speed; with torque off it stays where it is put (:meth:`ServoBusEmulator.move_by_hand`), or, as a
+leader arm moved by an operator, follows a recorded trajectory (:meth:`ServoBusEmulator.play`).
 
 Faults are injected by assigning attributes while it runs: ``drop_replies`` (ignore the next N
 requests, so the client times out), ``corrupt_checksum`` (spoil the checksum of the next N
@@ -19,12 +20,13 @@ an exact moment of the protocol (the instant torque goes on, say).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import select
 import threading
 import time
 import tty
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from types import TracebackType
 from typing import Self
 
@@ -125,6 +127,9 @@ class ServoBusEmulator:
         self._gone = threading.Event()
         self._thread: threading.Thread | None = None
         self._last = time.monotonic()
+        self._trajectory: list[tuple[float, dict[int, int]]] = []
+        self._loop = True
+        self._played_from = 0.0
 
     # -- lifecycle --------------------------------------------------------------------------------
 
@@ -197,6 +202,23 @@ class ServoBusEmulator:
             servo.position = float(min(max(ticks, 0), p.MAX_TICK))
             servo.advance(0.0)
 
+    def play(self, trajectory: Sequence[tuple[float, Mapping[int, int]]], *, loop: bool = True) -> None:
+        """Move the torque-off servos along ``trajectory`` (seconds from now, ticks by id), as a hand would.
+
+        Positions are interpolated linearly between samples; after the last one the trajectory
+        starts again (``loop``) or stays at its end. A torque-on servo keeps driving to its goal.
+
+        Raises:
+            ValueError: An empty trajectory, or times that do not increase.
+        """
+        samples = [(float(t), dict(ticks)) for t, ticks in trajectory]
+        if not samples or any(b[0] <= a[0] for a, b in itertools.pairwise(samples)):
+            raise ValueError("a trajectory needs samples at increasing times")
+        with self._lock:
+            self._trajectory = samples
+            self._loop = loop
+            self._played_from = time.monotonic()
+
     # -- serving --------------------------------------------------------------------------------
 
     def _advance(self) -> None:
@@ -204,6 +226,22 @@ class ServoBusEmulator:
         dt, self._last = now - self._last, now
         for servo in self.servos.values():
             servo.advance(dt)
+        if self._trajectory:
+            self._follow_trajectory(now - self._played_from)
+
+    def _follow_trajectory(self, elapsed: float) -> None:
+        samples = self._trajectory
+        end = samples[-1][0]
+        at = samples[0][0] + (elapsed % end if self._loop and end > 0 else min(elapsed, end))
+        after = next((i for i, (t, _) in enumerate(samples) if t >= at), len(samples) - 1)
+        before = max(0, after - 1)
+        (t0, a), (t1, b) = samples[before], samples[after]
+        weight = 0.0 if t1 <= t0 else (at - t0) / (t1 - t0)
+        for servo_id, servo in self.servos.items():
+            if servo.torque_enabled or servo_id not in a or servo_id not in b:
+                continue
+            servo.position = float(a[servo_id] + weight * (b[servo_id] - a[servo_id]))
+            servo.advance(0.0)
 
     def _serve(self) -> None:
         buffer = bytearray()

@@ -92,10 +92,12 @@ class SO10xFollowerHAL:
     """
 
     adapter = "so10x_follower"
+    params_model: type[SO10xFollowerParams] = SO10xFollowerParams
+    field_prefix = "hal.params"
 
     def __init__(self, manifest: RobotManifest, params: Mapping[str, Any] | None = None) -> None:
         self.params = validate_model(
-            SO10xFollowerParams, dict(params or {}), source="the so10x_follower HAL", field_prefix="hal.params"
+            self.params_model, dict(params or {}), source=f"the {self.adapter} arm", field_prefix=self.field_prefix
         )
         self.manifest = manifest
         self.robot_id = manifest.robot_id
@@ -136,7 +138,7 @@ class SO10xFollowerHAL:
             with ExitStack() as stack:
                 port = self.params.port or ""
                 if self.params.emulate:
-                    emulator = ServoBusEmulator(self._ids, speed_ticks_s=self.params.emulator_speed_ticks_s)
+                    emulator = self._make_emulator()
                     stack.enter_context(emulator)
                     port = emulator.port
                     self.emulator = emulator
@@ -152,10 +154,7 @@ class SO10xFollowerHAL:
                         f"robot '{self.robot_id}' on {port}: servo(s) {', '.join(names)} did not answer a ping "
                         f"(check power, the daisy-chain cable at that joint, and the servo id)"
                     )
-                ticks = self._read_ticks(bus)
-                self._goals = [round(t) for t, _ in ticks]
-                bus.sync_write(Register.GOAL_POSITION, self._goal_data())
-                bus.sync_write(Register.TORQUE_ENABLE, dict.fromkeys(self._ids, b"\x01"))
+                self._prepare(bus)
                 self._stack = stack.pop_all()
                 self.bus = bus
 
@@ -228,6 +227,16 @@ class SO10xFollowerHAL:
                 bus.sync_write(Register.TORQUE_ENABLE, dict.fromkeys(self._ids, b"\x00"))
 
     # -- internals ------------------------------------------------------------------------------
+
+    def _make_emulator(self) -> ServoBusEmulator:
+        return ServoBusEmulator(self._ids, speed_ticks_s=self.params.emulator_speed_ticks_s)
+
+    def _prepare(self, bus: FeetechBus) -> None:
+        """Hold the present pose, then enable torque (a follower must not jump when it powers up)."""
+        ticks = self._read_ticks(bus)
+        self._goals = [round(t) for t, _ in ticks]
+        bus.sync_write(Register.GOAL_POSITION, self._goal_data())
+        bus.sync_write(Register.TORQUE_ENABLE, dict.fromkeys(self._ids, b"\x01"))
 
     def _bus(self) -> FeetechBus:
         bus = self.bus
