@@ -15,7 +15,7 @@ import structlog
 
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, exit_codes
 from openral_cli.record import record
-from openral_cli.recording import build_recorder, dataset, recording_summary, replay
+from openral_cli.recording import build_recorder, build_rosbag, dataset, recording_summary, replay, with_thumbnails
 from openral_cli.session import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
@@ -162,6 +162,12 @@ def cli(ctx: click.Context, debug: bool) -> None:
     help="Record the run as one episode of a LeRobotDataset v3.0 in this folder.",
 )
 @click.option("--task", default="", help="The episode's task string (with --dataset-out).")
+@click.option(
+    "--rosbag",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="Record joint states, commands, camera images and tick records as a ROS 2 bag (MCAP).",
+)
 @click.option("--resume", is_flag=True, help="Add the episode to the dataset already in --dataset-out.")
 @click.option(
     "--vcodec",
@@ -185,6 +191,7 @@ def deploy(
     mcap_path: Path | None,
     dataset_out: Path | None,
     task: str,
+    rosbag: Path | None,
     resume: bool,
     vcodec: str,
 ) -> None:
@@ -221,6 +228,8 @@ def deploy(
                     recording=None
                     if dataset_out is None
                     else Recording(dataset_out, task or env.task.instruction or "", resume, vcodec),
+                    rosbag=rosbag,
+                    config_path=config_path,
                 )
             except ROSDeadlineMissed as exc:
                 if exc.run_result is not None:
@@ -245,6 +254,8 @@ def _deploy(
     foxglove_port: int | None = None,
     mcap_path: Path | None = None,
     recording: Recording | None = None,
+    rosbag: Path | None = None,
+    config_path: Path | None = None,
 ) -> RunResult:
     """Build, start, run and close one deployment; a stop signal at any point unwinds what was started."""
     with ExitStack() as made:  # closes what was made if something after it fails to build
@@ -253,9 +264,13 @@ def _deploy(
             recorder = build_recorder(env, recording.root, resume=recording.resume, vcodec=recording.vcodec)
             made.callback(recorder.close)
         observers = []
+        if rosbag is not None:
+            env = with_thumbnails(env, FOXGLOVE_IMAGE_HZ)  # the bag's images are the runner's thumbnails
+            bag = build_rosbag(env, rosbag, deployment=config_path)
+            made.callback(bag.close)
+            observers.append(bag)
         if foxglove_port is not None or mcap_path is not None:
-            if not env.thumbnail_hz:  # the view shows the runner's camera thumbnails
-                env = env.model_copy(update={"thumbnail_hz": FOXGLOVE_IMAGE_HZ})
+            env = with_thumbnails(env, FOXGLOVE_IMAGE_HZ)  # the view shows the runner's camera thumbnails
             # Loaded only when asked for: the bridge imports foxglove-sdk (the 'foxglove' extra).
             bridge = importlib.import_module("openral_runner.bridges.foxglove")
             sink = bridge.FoxgloveSink(port=foxglove_port, mcap_path=mcap_path)

@@ -21,7 +21,7 @@ import structlog
 
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.keys import KeyCommand, KeyReader
-from openral_cli.recording import build_recorder
+from openral_cli.recording import build_recorder, build_rosbag, with_thumbnails
 from openral_cli.session import STOP_EXIT_CODES, command_span, running
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
@@ -87,6 +87,12 @@ class _Totals:
     show_default=True,
     help="What a stop signal does to the episode under way.",
 )
+@click.option(
+    "--rosbag",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="Also record the session as a ROS 2 bag (MCAP): joint states, commands, images, ticks, episodes.",
+)
 @click.option("--otlp-endpoint", metavar="URL", default=None, help="Export telemetry over OTLP to this collector.")
 @click.pass_context
 def record(
@@ -101,6 +107,7 @@ def record(
     resume: bool,
     vcodec: str,
     on_stop: str,
+    rosbag: Path | None,
     otlp_endpoint: str | None,
 ) -> None:
     """Record episodes into a LeRobotDataset v3.0 (keys: n/→ next, r/← re-record, q/Esc stop)."""
@@ -111,12 +118,16 @@ def record(
             env = RobotEnvironment.from_yaml(config_path, field="--config")
             task_list = list(tasks) or [env.task.instruction or ""]
             recorder = build_recorder(env, dataset_out, resume=resume, vcodec=vcodec)
+            observers = []
+            if rosbag is not None:
+                env = with_thumbnails(env)
+                observers.append(build_rosbag(env, rosbag, deployment=config_path))
             keys = _Keys()
             totals = _Totals()
             try:
                 with (
                     KeyReader(keys),
-                    running(env, config_path.parent, signals=signals, recorder=recorder) as runner,
+                    running(env, config_path.parent, signals=signals, recorder=recorder, observers=observers) as runner,
                 ):
                     _record_episodes(
                         runner,

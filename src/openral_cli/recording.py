@@ -50,6 +50,23 @@ def build_recorder(env: RobotEnvironment, dataset_out: Path, *, resume: bool, vc
     return recorder_module.RolloutRecorder(sink, joint_names=robot.joint_names)
 
 
+def build_rosbag(env: RobotEnvironment, path: Path, *, deployment: Path | None) -> Any:
+    """A ``Ros2BagWriter`` for ``env``'s robot into ``path``, with the deployment file attached.
+
+    Raises:
+        ROSConfigError: The file exists or cannot be created.
+        ROSDependencyMissing: The ``dataset`` extra is not installed.
+    """
+    bag = importlib.import_module("openral_dataset.ros2_bag")
+    robot = load_robot_manifest(env.hal.robot_id)
+    return bag.Ros2BagWriter(path, joint_names=robot.joint_names, deployment=deployment)
+
+
+def with_thumbnails(env: RobotEnvironment, rate_hz: float = 10.0) -> RobotEnvironment:
+    """``env`` with camera thumbnails on (at ``rate_hz`` when it sets none): what views and bags show."""
+    return env if env.thumbnail_hz else env.model_copy(update={"thumbnail_hz": rate_hz})
+
+
 def recording_summary(recorder: Any) -> str:
     """One line: episodes committed, frames, repeated frames and dropped ticks."""
     committed = [e for e in recorder.episodes if e.committed]

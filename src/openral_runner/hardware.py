@@ -170,7 +170,9 @@ class HardwareRunner(InferenceRunnerBase):
                 for observer in self.observers:
                     if isinstance(observer, ThumbnailSubscriber):
                         self.thumbnails.subscribe(observer.on_thumbnail)  # one JPEG encode for every viewer
-            for observer in self.observers:
+            # Closed in reverse: the thumbnail worker (a producer) first, so its last thumbnails
+            # still reach the observers that subscribe to them.
+            for observer in sorted(self.observers, key=lambda o: o is self.thumbnails):
                 stack.callback(self._safe_close, f"observer {type(observer).__name__}", observer.close)
             super().activate()  # starts the telemetry worker thread
             stack.callback(super().deactivate)

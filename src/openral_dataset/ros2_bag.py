@@ -1,0 +1,221 @@
+"""``Ros2BagWriter``: the session as a ROS 2 bag (MCAP, profile ``ros2``, CDR), readable by ROS 2 tools and Foxglove.
+
+A tick observer. Message definitions and CDR serialisation come from the ``rosbags`` typestore
+(ROS 2 Humble), never written by hand. Topics:
+
+- ``/joint_states`` (``sensor_msgs/msg/JointState``): the measured state of every tick.
+- ``/openral/command/requested`` and ``/openral/command/sent`` (``sensor_msgs/msg/JointState``,
+  positions): what the skill asked for, and what reached the robot after safety.
+- ``/camera/<sensor_id>/compressed`` (``sensor_msgs/msg/CompressedImage``): the runner's JPEG
+  thumbnails (subscribed, so a frame is encoded once for every viewer).
+- ``/openral/tick`` and ``/openral/episode`` (``std_msgs/msg/String``, JSON): each tick's record
+  (timings, lateness, why an action was withheld, trace context) and each episode boundary.
+
+The deployment file rides along as an attachment. Stamps are wall-clock nanoseconds: monotonic
+stamps plus one offset taken when the bag opens, so intervals stay exact. A bag cut short by a
+crash has no summary but stays readable by a streaming reader, up to its last message.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import IO, Any, Final
+
+from openral_core import ROSConfigError, ROSDependencyMissing, TickResult, WorldState
+from openral_runner.queued_observer import QueuedObserver
+from openral_runner.thumbnails import Thumbnail
+
+try:
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+except ImportError as exc:
+    raise ROSDependencyMissing(exc.name or "rosbags", extra="dataset", needed_for="ROS 2 bags") from exc
+
+JOINT_STATE: Final = "sensor_msgs/msg/JointState"
+COMPRESSED_IMAGE: Final = "sensor_msgs/msg/CompressedImage"
+STRING: Final = "std_msgs/msg/String"
+TOPIC_JOINT_STATES: Final = "/joint_states"
+TOPIC_REQUESTED: Final = "/openral/command/requested"
+TOPIC_SENT: Final = "/openral/command/sent"
+TOPIC_TICK: Final = "/openral/tick"
+TOPIC_EPISODE: Final = "/openral/episode"
+TOPIC_CAMERA: Final = "/camera/{sensor_id}/compressed"
+
+
+class Ros2BagWriter(QueuedObserver):
+    """Writes every tick, episode boundary and camera thumbnail of a run into one ROS 2 MCAP bag.
+
+    Args:
+        path: The ``.mcap`` file to create.
+        joint_names: The robot's joints (names of the command messages).
+        deployment: The deployment file, attached to the bag.
+        overwrite: Replace an existing file instead of refusing.
+
+    Raises:
+        ROSConfigError: The file exists (without ``overwrite``) or cannot be created.
+    """
+
+    def __init__(
+        self, path: Path, *, joint_names: list[str], deployment: Path | None = None, overwrite: bool = False
+    ) -> None:
+        try:
+            self._file: IO[bytes] = open(path, "wb" if overwrite else "xb")  # noqa: SIM115  (closed in handle_close)
+        except OSError as exc:
+            raise ROSConfigError(
+                f"cannot create the ROS 2 bag {path}: {exc}",
+                field="--rosbag",
+                hint="choose a new file in a writable folder",
+            ) from exc
+        self.path = path
+        self.joint_names = list(joint_names)
+        self._store = get_typestore(Stores.ROS2_HUMBLE)
+        self._offset_ns = time.time_ns() - time.monotonic_ns()
+        self._writer = Writer(self._file)
+        self._writer.start(profile="ros2", library="openral")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._sequence = 0
+        self._thumbs: dict[str, Thumbnail] = {}
+        self._thumb_lock = threading.Lock()
+        self.messages = 0
+        if deployment is not None:
+            now = time.time_ns()
+            self._writer.add_attachment(
+                create_time=now,
+                log_time=now,
+                name=deployment.name,
+                media_type="application/yaml",
+                data=deployment.read_bytes(),
+            )
+        super().__init__(name="openral-rosbag", max_queue=4096)
+
+    # -- observer hooks ----------------------------------------------------------------------
+
+    def on_thumbnail(self, thumb: Thumbnail) -> None:
+        """Keep a camera's newest thumbnail; the worker writes it with the next tick."""
+        with self._thumb_lock:
+            self._thumbs[thumb.sensor_id] = thumb
+
+    def handle_tick(self, tick: TickResult, world: WorldState | None) -> None:
+        log_ns = tick.start_ns + self._offset_ns
+        joints = None if world is None else world.joint_state
+        if joints is not None:
+            stamp = joints.stamp_ns + self._offset_ns
+            self._write(
+                TOPIC_JOINT_STATES,
+                JOINT_STATE,
+                self._joint_state(stamp, joints.names, joints.positions, joints.velocities or []),
+                log_ns,
+            )
+        if tick.requested_action is not None:
+            self._write(TOPIC_REQUESTED, JOINT_STATE, self._command(log_ns, tick.requested_action), log_ns)
+        if tick.action_applied and tick.sent_action is not None:
+            self._write(TOPIC_SENT, JOINT_STATE, self._command(log_ns, tick.sent_action), log_ns)
+        self._write(TOPIC_TICK, STRING, self._string(_tick_record(tick)), log_ns)
+        self._write_thumbnails(log_ns)
+
+    def _write_thumbnails(self, log_ns: int) -> None:
+        with self._thumb_lock:
+            thumbs, self._thumbs = self._thumbs, {}
+        for thumb in thumbs.values():
+            topic = TOPIC_CAMERA.format(sensor_id=thumb.sensor_id)
+            self._write(topic, COMPRESSED_IMAGE, self._image(thumb), log_ns)
+
+    def handle_episode_start(self, episode_idx: int, task: str) -> None:
+        now = time.time_ns()
+        record = {"event": "start", "episode_idx": episode_idx, "task": task}
+        self._write(TOPIC_EPISODE, STRING, self._string(record), now)
+
+    def handle_episode_end(self, episode_idx: int, *, success: bool, keep: bool) -> None:
+        now = time.time_ns()
+        record = {"event": "end", "episode_idx": episode_idx, "success": success, "kept": keep}
+        self._write(TOPIC_EPISODE, STRING, self._string(record), now)
+
+    def handle_close(self) -> None:
+        try:
+            self._write_thumbnails(time.time_ns())  # the last ones, handed over after the last tick
+            self._writer.finish()  # type: ignore[no-untyped-call]
+        finally:
+            self._file.close()
+
+    # -- messages ----------------------------------------------------------------------------
+
+    def _write(self, topic: str, msgtype: str, message: Any, log_ns: int) -> None:
+        channel = self._channels.get(topic)
+        if channel is None:
+            schema = self._schemas.get(msgtype)
+            if schema is None:
+                text, _ = self._store.generate_msgdef(msgtype, ros_version=2)
+                schema = self._schemas[msgtype] = self._writer.register_schema(
+                    name=msgtype, encoding="ros2msg", data=text.encode("utf-8")
+                )
+            channel = self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding="cdr", schema_id=schema
+            )
+        data = self._store.serialize_cdr(message, msgtype)
+        self._writer.add_message(
+            channel_id=channel, log_time=log_ns, data=bytes(data), publish_time=log_ns, sequence=self._sequence
+        )
+        self._sequence += 1
+        self.messages += 1
+
+    def _header(self, stamp_ns: int, frame_id: str = "") -> Any:
+        types = self._store.types
+        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+        return types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
+        )
+
+    def _joint_state(self, stamp_ns: int, names: list[str], positions: list[float], velocities: list[float]) -> Any:
+        import numpy as np  # noqa: PLC0415  (numpy is a core dependency; the typestore wants arrays)
+
+        return self._store.types[JOINT_STATE](
+            header=self._header(stamp_ns),
+            name=list(names),
+            position=np.asarray(positions, np.float64),
+            velocity=np.asarray(velocities, np.float64),
+            effort=np.zeros(0, np.float64),
+        )
+
+    def _command(self, stamp_ns: int, positions: list[float]) -> Any:
+        return self._joint_state(stamp_ns, self.joint_names, positions, [])
+
+    def _image(self, thumb: Thumbnail) -> Any:
+        import numpy as np  # noqa: PLC0415
+
+        return self._store.types[COMPRESSED_IMAGE](
+            header=self._header(thumb.stamp_ns + self._offset_ns, thumb.frame_id or thumb.sensor_id),
+            format="jpeg",
+            data=np.frombuffer(thumb.jpeg, np.uint8),
+        )
+
+    def _string(self, record: dict[str, Any]) -> Any:
+        return self._store.types[STRING](data=json.dumps(record, allow_nan=False, default=str))
+
+
+def _tick_record(tick: TickResult) -> dict[str, Any]:
+    record = tick.model_dump(
+        mode="json",
+        include={
+            "tick_idx",
+            "tick_ms",
+            "sensors_ms",
+            "world_state_ms",
+            "inference_ms",
+            "safety_ms",
+            "hal_ms",
+            "action_applied",
+            "withheld_reason",
+            "deadline_missed",
+            "lateness_ms",
+            "stale_sensors",
+            "safety_violations",
+            "trace_context",
+            "episode_idx",
+            "step_idx",
+        },
+    )
+    return {k: v for k, v in record.items() if v is not None}
