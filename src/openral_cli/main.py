@@ -287,6 +287,8 @@ def _deploy(
                     result = runner.run(max_ticks, duration_s=duration)
                 if recording is not None:
                     runner.episode_end(success=result.stop_reason in _SUCCESSFUL_STOPS)
+            if recorder is not None:  # closed with the runner: every tick is written, the report is final
+                result.metadata["recording"] = recorder.report()
         except ROSStopRequested as exc:
             _log.info("stopped before the first tick; everything started was closed", reason=exc.reason)
             return stopped_before_start(env, exc)

@@ -22,6 +22,7 @@ import structlog
 from openral_core import TickResult, WorldState
 from openral_dataset import schema
 from openral_dataset.writer import EpisodeSummary, LeRobotDatasetSink
+from openral_observability import metrics, semconv
 from openral_runner.queued_observer import QueuedObserver
 
 _log = structlog.get_logger(__name__)
@@ -71,6 +72,7 @@ class RolloutRecorder(QueuedObserver):
     def on_overflow(self, tick: TickResult) -> None:
         if tick.episode_idx is not None:
             self.dropped_ticks += 1
+            metrics.add(semconv.METRIC_RECORDING_DROPPED_TICKS)
 
     def handle_episode_start(self, episode_idx: int, task: str) -> None:
         self._held = None
@@ -82,6 +84,8 @@ class RolloutRecorder(QueuedObserver):
             return
         summary = self.sink.end_episode(keep=keep, success=success)
         self.episodes.append(summary)
+        if summary.committed:
+            metrics.record_histogram_ms(semconv.METRIC_RECORDING_EPISODE_CLOSE, summary.close_s * 1e3)
         _log.info(
             "episode committed" if summary.committed else "episode discarded",
             episode=summary.episode_idx,
@@ -119,6 +123,22 @@ class RolloutRecorder(QueuedObserver):
                 row[schema.camera_column(cam.sensor_id, "seq")] = frame.seq
                 row[schema.camera_column(cam.sensor_id, "age_ms")] = (world.stamp_ns - frame.stamp_ns) / 1e6
         self.sink.add_row(row, frames)
+        metrics.add(semconv.METRIC_RECORDING_FRAMES)
+        for cam in self.sink.cameras:
+            if row.get(schema.camera_column(cam.sensor_id, "repeated")):
+                metrics.add(semconv.METRIC_RECORDING_REPEATED_FRAMES, 1, {semconv.ATTR_SENSOR_ID: cam.sensor_id})
+
+    def report(self) -> dict[str, int]:
+        """What the recording has done so far (the worker may still be writing the last ticks)."""
+        committed = [e for e in self.episodes if e.committed]
+        return {
+            "episodes_committed": len(committed),
+            "episodes_discarded": len(self.episodes) - len(committed),
+            "frames": sum(e.frames for e in committed),
+            "repeated_frames": self.repeated_frames,
+            "dropped_ticks": self.dropped_ticks,
+            "errors": self.errors,
+        }
 
     def handle_close(self) -> None:
         if self.sink.episode_open:

@@ -202,3 +202,41 @@ def test_ctrl_c_keeps_or_discards_the_episode_under_way_and_exits_130(
     report = check_dataset(out)
     assert report.problems == []
     assert report.episodes == kept
+
+
+def test_deploy_records_its_run_as_one_episode_and_reports_it(deploy_process, deployment, tmp_path: Path) -> None:
+    import json  # noqa: PLC0415
+
+    config = deployment(twin_camera=False)
+    out = tmp_path / "ds"
+    proc = deploy_process(
+        [
+            "deploy",
+            "--config",
+            str(config),
+            "--max-ticks",
+            "25",
+            "--dataset-out",
+            str(out),
+            "--task",
+            "wave",
+            "--vcodec",
+            "h264",
+            "--json",
+        ]
+    )
+    code, stdout = proc.finish(timeout=120)
+    assert code == 0, proc.stderr
+    result = json.loads(stdout)
+    assert result["metadata"]["recording"] == {
+        "episodes_committed": 1,
+        "episodes_discarded": 0,
+        "frames": 25,
+        "repeated_frames": result["metadata"]["recording"]["repeated_frames"],
+        "dropped_ticks": 0,
+        "errors": 0,
+    }
+    report = check_dataset(out)
+    assert report.problems == []
+    assert (report.episodes, report.frames) == (1, 25)
+    assert read_tasks(out) == {"wave": 0}
