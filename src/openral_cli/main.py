@@ -149,13 +149,6 @@ def cli(ctx: click.Context, debug: bool) -> None:
     f"default port {FOXGLOVE_DEFAULT_PORT}.",
 )
 @click.option(
-    "--mcap",
-    "mcap_path",
-    type=click.Path(path_type=Path, dir_okay=False),
-    default=None,
-    help="Record the same channels as --foxglove to an MCAP file.",
-)
-@click.option(
     "--dataset-out",
     type=click.Path(path_type=Path, file_okay=False),
     default=None,
@@ -163,10 +156,11 @@ def cli(ctx: click.Context, debug: bool) -> None:
 )
 @click.option("--task", default="", help="The episode's task string (with --dataset-out).")
 @click.option(
-    "--rosbag",
+    "--mcap",
+    "rosbag",
     type=click.Path(path_type=Path, dir_okay=False),
     default=None,
-    help="Record joint states, commands, camera images and tick records as a ROS 2 bag (MCAP).",
+    help="Record joint states, commands, camera images and tick records as a ROS 2 bag (MCAP, profile ros2).",
 )
 @click.option("--resume", is_flag=True, help="Add the episode to the dataset already in --dataset-out.")
 @click.option(
@@ -188,7 +182,6 @@ def deploy(
     otlp_protocol: str | None,
     trace_sample_ratio: float | None,
     foxglove_port: int | None,
-    mcap_path: Path | None,
     dataset_out: Path | None,
     task: str,
     rosbag: Path | None,
@@ -224,7 +217,6 @@ def deploy(
                     signals=signals,
                     quiet=as_json,
                     foxglove_port=foxglove_port,
-                    mcap_path=mcap_path,
                     recording=None
                     if dataset_out is None
                     else Recording(dataset_out, task or env.task.instruction or "", resume, vcodec),
@@ -252,7 +244,6 @@ def _deploy(
     signals: StopSignals,
     quiet: bool,
     foxglove_port: int | None = None,
-    mcap_path: Path | None = None,
     recording: Recording | None = None,
     rosbag: Path | None = None,
     config_path: Path | None = None,
@@ -269,11 +260,11 @@ def _deploy(
             bag = build_rosbag(env, rosbag, deployment=config_path)
             made.callback(bag.close)
             observers.append(bag)
-        if foxglove_port is not None or mcap_path is not None:
+        if foxglove_port is not None:
             env = with_thumbnails(env, FOXGLOVE_IMAGE_HZ)  # the view shows the runner's camera thumbnails
             # Loaded only when asked for: the bridge imports foxglove-sdk (the 'foxglove' extra).
             bridge = importlib.import_module("openral_runner.bridges.foxglove")
-            sink = bridge.FoxgloveSink(port=foxglove_port, mcap_path=mcap_path)
+            sink = bridge.FoxgloveSink(port=foxglove_port)
             made.callback(sink.close)
             observers.append(sink)
             if sink.port is not None and not quiet:

@@ -88,7 +88,8 @@ class _Totals:
     help="What a stop signal does to the episode under way.",
 )
 @click.option(
-    "--rosbag",
+    "--mcap",
+    "rosbag",
     type=click.Path(path_type=Path, dir_okay=False),
     default=None,
     help="Also record the session as a ROS 2 bag (MCAP): joint states, commands, images, ticks, episodes.",

@@ -21,10 +21,15 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any, Final
 
-from openral_core import ROSConfigError, ROSDependencyMissing, TickResult, WorldState
+from pydantic import BaseModel, ConfigDict, Field
+
+from openral_core import RobotManifest, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
+from openral_core.config import validate_model
+from openral_core.config_files import resolve_user_path
 from openral_runner.queued_observer import QueuedObserver
 from openral_runner.thumbnails import Thumbnail
 
@@ -45,6 +50,15 @@ TOPIC_EPISODE: Final = "/openral/episode"
 TOPIC_CAMERA: Final = "/camera/{sensor_id}/compressed"
 
 
+class Ros2BagParams(BaseModel):
+    """Parameters of the ``ros2_bag`` observer in a deployment's ``observers:`` block."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    path: str = Field(description="The .mcap file to create (relative to the deployment file's folder).")
+    overwrite: bool = Field(default=False, description="Replace an existing file.")
+
+
 class Ros2BagWriter(QueuedObserver):
     """Writes every tick, episode boundary and camera thumbnail of a run into one ROS 2 MCAP bag.
 
@@ -61,12 +75,30 @@ class Ros2BagWriter(QueuedObserver):
     def __init__(
         self, path: Path, *, joint_names: list[str], deployment: Path | None = None, overwrite: bool = False
     ) -> None:
+        self._init(path, joint_names=joint_names, deployment=deployment, overwrite=overwrite)
+        super().__init__(name="openral-rosbag", max_queue=4096)
+
+    @classmethod
+    def from_config(
+        cls, params: Mapping[str, Any], *, robot: RobotManifest, env: Any, base_dir: Path | None = None
+    ) -> Ros2BagWriter:
+        """Plugin constructor (observer ``ros2_bag``): ``params`` are ``path`` (relative to the deployment's
+        folder) and ``overwrite``. Camera images come from the runner's thumbnails (``thumbnail_hz``).
+
+        Raises:
+            ROSConfigError: A wrong parameter, or the file cannot be created.
+        """
+        config = validate_model(Ros2BagParams, dict(params), field_prefix="observers[].params")
+        path = resolve_user_path(config.path, base_dir, field="observers[].params.path")
+        return cls(path, joint_names=robot.joint_names, overwrite=config.overwrite)
+
+    def _init(self, path: Path, *, joint_names: list[str], deployment: Path | None, overwrite: bool) -> None:
         try:
             self._file: IO[bytes] = open(path, "wb" if overwrite else "xb")  # noqa: SIM115  (closed in handle_close)
         except OSError as exc:
             raise ROSConfigError(
                 f"cannot create the ROS 2 bag {path}: {exc}",
-                field="--rosbag",
+                field="--mcap",
                 hint="choose a new file in a writable folder",
             ) from exc
         self.path = path
@@ -90,7 +122,6 @@ class Ros2BagWriter(QueuedObserver):
                 media_type="application/yaml",
                 data=deployment.read_bytes(),
             )
-        super().__init__(name="openral-rosbag", max_queue=4096)
 
     # -- observer hooks ----------------------------------------------------------------------
 

@@ -154,8 +154,8 @@ def test_duration_must_be_a_positive_finite_number(tmp_path: Path, value: str) -
     assert "--duration" in out.output
 
 
-def test_deploy_records_mcap_with_one_tick_message_per_tick(tmp_path: Path) -> None:
-    pytest.importorskip("foxglove", reason="needs the 'foxglove' extra")
+def test_deploy_records_a_ros2_bag_with_one_tick_message_per_tick(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags", reason="needs the 'dataset' extra")
     from mcap.reader import make_reader  # noqa: PLC0415
 
     path = write(tmp_path, NULL_DEPLOYMENT)
@@ -163,7 +163,9 @@ def test_deploy_records_mcap_with_one_tick_message_per_tick(tmp_path: Path) -> N
     out = CliRunner().invoke(cli, ["deploy", "--config", str(path), "--max-ticks", "25", "--mcap", str(recording)])
     assert out.exit_code == 0, out.output
     with recording.open("rb") as stream:
-        topics = [channel.topic for _schema, channel, _message in make_reader(stream).iter_messages()]
+        reader = make_reader(stream)
+        assert reader.get_header().profile == "ros2"
+        topics = [channel.topic for _schema, channel, _message in reader.iter_messages()]
     assert topics.count("/openral/tick") == 25
     assert topics.count("/joint_states") == 25
 

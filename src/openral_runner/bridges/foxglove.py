@@ -1,4 +1,4 @@
-"""``FoxgloveSink``: every tick to a live Foxglove WebSocket and/or an MCAP file, off the tick thread.
+"""``FoxgloveSink``: every tick to a live Foxglove WebSocket, off the tick thread.
 
 Channels (one schema each; JSON messages carry a JSON Schema, so Foxglove plots any field):
 
@@ -45,7 +45,6 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import (
-    FrameEncoding,
     JointState,
     ROSConfigError,
     ROSDependencyMissing,
@@ -53,20 +52,16 @@ from openral_core import (
     WorldState,
 )
 from openral_core.config import validate_model
-from openral_core.config_files import resolve_user_path
 from openral_runner.observer import TickObserver
 from openral_runner.thumbnails import Thumbnail
 
 try:
     import foxglove
     from foxglove.channels import CompressedImageChannel
-    from foxglove.mcap import MCAPWriter
     from foxglove.messages import CompressedImage, Timestamp
     from foxglove.websocket import WebSocketServer
 except ImportError as exc:  # pragma: no cover - exercised with the extra missing
-    raise ROSDependencyMissing(
-        "foxglove", extra="foxglove", needed_for="Foxglove live view and MCAP recording"
-    ) from exc
+    raise ROSDependencyMissing("foxglove", extra="foxglove", needed_for="the Foxglove live view") from exc
 
 _log = structlog.get_logger(__name__)
 
@@ -137,7 +132,6 @@ SAFETY_SCHEMA: dict[str, Any] = {
     },
 }
 
-_PASS_THROUGH = {FrameEncoding.JPEG: "jpeg", FrameEncoding.PNG: "png"}
 
 _Item = tuple[TickResult, JointState | None, int]
 
@@ -147,32 +141,28 @@ class FoxgloveParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    port: int | None = Field(
-        default=None, ge=0, le=65535, description="Serve a live WebSocket here (0: any free port)."
-    )
+    port: int = Field(default=8765, ge=0, le=65535, description="Serve the live WebSocket here (0: any free port).")
     host: str = Field(default="127.0.0.1", description="Interface the live server binds to.")
-    mcap: str | None = Field(default=None, description="Record the same channels to this MCAP file.")
-    overwrite: bool = Field(default=False, description="Replace an existing MCAP file.")
 
 
 class FoxgloveSink(TickObserver):
-    """A tick observer that serves a live Foxglove WebSocket and/or records an MCAP file.
+    """A tick observer that serves a live Foxglove WebSocket.
+
+    A file of the session is the ROS 2 bag (:mod:`openral_dataset.ros2_bag`, ``--mcap``). The
+    channels here log into :attr:`context`; a caller can attach more Foxglove sinks to it.
 
     Args:
         port: Serve a Foxglove WebSocket on this port (0 picks a free one; see :attr:`port`).
-            ``None`` serves nothing.
+            ``None`` serves nothing (the channels only reach sinks attached to :attr:`context`).
         host: Interface the server binds to.
-        mcap_path: Record the same channels to this MCAP file. ``None`` records nothing.
         queue_size: Ticks buffered for the worker; when full the oldest is dropped and counted.
         flush_interval_s: How often the worker wakes to publish what was handed over (the live
             view's added latency). The tick thread wakes it early only when the queue is half
             full: waking a sleeping thread costs the tick thread tens of µs, appending costs ~1 µs.
-        overwrite: Replace an existing MCAP file instead of refusing.
         close_timeout_s: How long :meth:`close` waits for the worker to drain.
 
     Raises:
-        ROSConfigError: Neither ``port`` nor ``mcap_path`` was given, the MCAP file cannot be
-            created (exists, missing folder, no permission), or the port cannot be bound.
+        ROSConfigError: The port cannot be bound, or ``queue_size`` is below 1.
     """
 
     def __init__(
@@ -180,16 +170,10 @@ class FoxgloveSink(TickObserver):
         *,
         port: int | None = None,
         host: str = "127.0.0.1",
-        mcap_path: Path | None = None,
         queue_size: int = 256,
         flush_interval_s: float = 0.02,
-        overwrite: bool = False,
         close_timeout_s: float = 5.0,
     ) -> None:
-        if port is None and mcap_path is None:
-            raise ROSConfigError(
-                "the Foxglove sink needs somewhere to send ticks", hint="give a port (--foxglove) or a file (--mcap)"
-            )
         if queue_size < 1:
             raise ROSConfigError(f"queue_size must be at least 1, got {queue_size}", field="queue_size")
         self._close_timeout_s = close_timeout_s
@@ -198,20 +182,8 @@ class FoxgloveSink(TickObserver):
         self._offset_ns = time.time_ns() - time.monotonic_ns()
         self._context = foxglove.Context()
         self._server: WebSocketServer | None = None
-        self._writer: MCAPWriter | None = None
-        self.mcap_path = mcap_path
 
         with ExitStack() as stack:
-            if mcap_path is not None:
-                try:
-                    writer = foxglove.open_mcap(mcap_path, allow_overwrite=overwrite, context=self._context)
-                except OSError as exc:
-                    raise ROSConfigError(
-                        f"cannot create MCAP file {mcap_path}: {exc}",
-                        hint="choose a new file in an existing, writable folder",
-                    ) from exc
-                stack.callback(writer.close)
-                self._writer = writer
             if port is not None:
                 try:
                     server = foxglove.start_server(name="openral", host=host, port=port, context=self._context)
@@ -245,17 +217,18 @@ class FoxgloveSink(TickObserver):
     ) -> FoxgloveSink:
         """Plugin constructor (observer ``foxglove``); ``params`` are validated as :class:`FoxgloveParams`.
 
-        A relative ``mcap`` path is resolved against ``base_dir`` (the deployment file's folder).
         Images come from the runner's thumbnails: give the deployment a ``thumbnail_hz``.
 
         Raises:
-            ROSConfigError: A wrong parameter (named with the allowed keys), or the port or file cannot be used.
+            ROSConfigError: A wrong parameter (named with the allowed keys), or the port cannot be bound.
         """
         config = validate_model(FoxgloveParams, dict(params), field_prefix="observers[].params")
-        mcap = (
-            None if config.mcap is None else resolve_user_path(config.mcap, base_dir, field="observers[].params.mcap")
-        )
-        return cls(port=config.port, host=config.host, mcap_path=mcap, overwrite=config.overwrite)
+        return cls(port=config.port, host=config.host)
+
+    @property
+    def context(self) -> foxglove.Context:
+        """The Foxglove context the channels log into (attach more sinks to it)."""
+        return self._context
 
     # -- what the CLI reads ---------------------------------------------------------------
 
@@ -305,9 +278,7 @@ class FoxgloveSink(TickObserver):
         if self._thread.is_alive():
             _log.warning("foxglove sink did not drain in time; closing anyway", timeout_s=self._close_timeout_s)
         with ExitStack() as stack:
-            # Unwinds in reverse: channels, then the server, then the MCAP writer.
-            if self._writer is not None:
-                stack.callback(self._writer.close)
+            # Unwinds in reverse: channels, then the server.
             if self._server is not None:
                 stack.callback(self._server.stop)
             for channel in (self._tick_channel, self._joint_channel, self._safety_channel):

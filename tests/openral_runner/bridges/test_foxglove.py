@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -65,10 +66,30 @@ def make_world(i: int, *, with_frame: bool = True) -> WorldState:
 
 
 @pytest.fixture
-def sink_cls() -> type:
-    """``FoxgloveSink``, imported only here: the first two tests run without the extra."""
+def sink_cls() -> Callable[..., object]:
+    """``FoxgloveSink``, imported only here: the first two tests run without the extra.
+
+    Called with ``mcap_path``, it attaches an MCAP sink to the view's Foxglove context, closed
+    with the view: the test's probe of what the view published.
+    """
     pytest.importorskip("foxglove", reason=EXTRA)
-    return importlib.import_module("openral_runner.bridges.foxglove").FoxgloveSink
+    foxglove = importlib.import_module("foxglove")
+    sink_type = importlib.import_module("openral_runner.bridges.foxglove").FoxgloveSink
+
+    def make(*, mcap_path: Path | None = None, **kwargs: object) -> object:
+        sink = sink_type(**kwargs)
+        if mcap_path is not None:
+            probe = foxglove.open_mcap(mcap_path, context=sink.context)
+            close = sink.close
+
+            def close_with_probe() -> None:
+                close()
+                probe.close()
+
+            sink.close = close_with_probe
+        return sink
+
+    return make
 
 
 @pytest.fixture
@@ -108,7 +129,7 @@ def test_missing_foxglove_names_the_extra() -> None:
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     extra, message = proc.stdout.strip().split(" | ")
     assert extra == "foxglove"
-    assert "Foxglove live view and MCAP recording" in message
+    assert "the Foxglove live view" in message
     assert "uv sync --extra foxglove" in message
     assert issubclass(ROSDependencyMissing, ROSConfigError)
 
@@ -220,14 +241,14 @@ def test_on_tick_never_blocks_when_the_worker_is_stalled(tmp_path: Path, sink_cl
     assert sink.ticks_published == 1 + 16
 
 
-def test_needs_a_port_or_a_file_and_refuses_an_existing_file(tmp_path: Path, sink_cls) -> None:
-    with pytest.raises(ROSConfigError, match="--foxglove"):
-        sink_cls()
-    existing = tmp_path / "taken.mcap"
-    existing.write_bytes(b"x")
-    with pytest.raises(ROSConfigError, match="cannot create MCAP file"):
-        sink_cls(mcap_path=existing)
-    assert existing.read_bytes() == b"x"
+def test_a_port_that_cannot_be_bound_names_the_flag(sink_cls) -> None:
+    import socket  # noqa: PLC0415
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        with pytest.raises(ROSConfigError, match="--foxglove"):
+            sink_cls(port=taken.getsockname()[1])
 
 
 def test_live_server_streams_ticks_to_a_websocket_client(sink_cls) -> None:
@@ -346,14 +367,17 @@ def test_one_jpeg_encode_serves_the_thumbnail_span_and_the_foxglove_view(tmp_pat
     assert len(read_mcap(tmp_path / "view.mcap")["/camera/front/compressed"]) == sink.images_published
 
 
-def test_a_deployment_configures_the_view_in_its_observers_block(tmp_path: Path, sink_cls, read_mcap) -> None:
+def test_a_deployment_configures_the_view_and_the_bag_in_its_observers_block(
+    tmp_path: Path, sink_cls, read_mcap
+) -> None:
     import subprocess  # noqa: PLC0415
     import sys  # noqa: PLC0415
 
     deployment = tmp_path / "view.yaml"
     deployment.write_text(
         "name: view\nrate_hz: 50\nhal: {robot_id: so101_follower, adapter: null}\nvla: {id: noop}\n"
-        "safety: {client: envelope}\nobservers:\n  - id: foxglove\n    params: {mcap: out/run.mcap}\n"
+        "safety: {client: envelope}\nobservers:\n  - id: foxglove\n    params: {port: 0}\n"
+        "  - id: ros2_bag\n    params: {path: out/run.mcap}\n"
     )
     (tmp_path / "out").mkdir()
     run = subprocess.run(
@@ -368,7 +392,7 @@ def test_a_deployment_configures_the_view_in_its_observers_block(tmp_path: Path,
     ticks = read_mcap(tmp_path / "out" / "run.mcap")["/openral/tick"]
     assert len(ticks) == 20
 
-    deployment.write_text(deployment.read_text().replace("mcap: out/run.mcap", "mcap: x.mcap, fps: 3"))
+    deployment.write_text(deployment.read_text().replace("port: 0", "port: 0, fps: 3"))
     bad = subprocess.run(
         [sys.executable, "-m", "openral_cli", "validate", str(deployment)],
         capture_output=True,
