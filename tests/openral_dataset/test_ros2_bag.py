@@ -116,6 +116,6 @@ def test_a_bag_cut_short_stays_readable_up_to_its_last_whole_message(tmp_path: P
 def test_an_existing_bag_is_not_overwritten(tmp_path: Path) -> None:
     path = tmp_path / "taken.mcap"
     path.write_bytes(b"precious")
-    with pytest.raises(ROSConfigError, match="--rosbag"):
+    with pytest.raises(ROSConfigError, match="--mcap"):
         Ros2BagWriter(path, joint_names=JOINTS)
     assert path.read_bytes() == b"precious"
