@@ -15,7 +15,16 @@ import structlog
 
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, exit_codes
 from openral_cli.record import record
-from openral_cli.recording import build_recorder, build_rosbag, dataset, recording_summary, replay, with_thumbnails
+from openral_cli.recording import (
+    MCAP_OPTION,
+    VCODEC_OPTION,
+    build_recorder,
+    build_rosbag,
+    dataset,
+    recording_summary,
+    replay,
+    with_thumbnails,
+)
 from openral_cli.session import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
@@ -155,21 +164,9 @@ def cli(ctx: click.Context, debug: bool) -> None:
     help="Record the run as one episode of a LeRobotDataset v3.0 in this folder.",
 )
 @click.option("--task", default="", help="The episode's task string (with --dataset-out).")
-@click.option(
-    "--mcap",
-    "rosbag",
-    type=click.Path(path_type=Path, dir_okay=False),
-    default=None,
-    help="Record joint states, commands, camera images and tick records as a ROS 2 bag (MCAP, profile ros2).",
-)
+@MCAP_OPTION
 @click.option("--resume", is_flag=True, help="Add the episode to the dataset already in --dataset-out.")
-@click.option(
-    "--vcodec",
-    type=click.Choice(["libsvtav1", "h264"]),
-    default="libsvtav1",
-    show_default=True,
-    help="Video codec of the recorded cameras.",
-)
+@VCODEC_OPTION
 @click.pass_context
 def deploy(
     ctx: click.Context,

@@ -21,7 +21,7 @@ import structlog
 
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.keys import KeyCommand, KeyReader
-from openral_cli.recording import build_recorder, build_rosbag, with_thumbnails
+from openral_cli.recording import MCAP_OPTION, VCODEC_OPTION, build_recorder, build_rosbag, with_thumbnails
 from openral_cli.session import STOP_EXIT_CODES, command_span, running
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
@@ -79,7 +79,7 @@ class _Totals:
 )
 @click.option("--task", "tasks", multiple=True, help="Task string; repeat it to cycle tasks over the episodes.")
 @click.option("--resume", is_flag=True, help="Add episodes to the dataset already in --dataset-out.")
-@click.option("--vcodec", type=click.Choice(["libsvtav1", "h264"]), default="libsvtav1", show_default=True)
+@VCODEC_OPTION
 @click.option(
     "--on-stop",
     type=click.Choice(["keep", "discard"]),
@@ -87,13 +87,7 @@ class _Totals:
     show_default=True,
     help="What a stop signal does to the episode under way.",
 )
-@click.option(
-    "--mcap",
-    "rosbag",
-    type=click.Path(path_type=Path, dir_okay=False),
-    default=None,
-    help="Also record the session as a ROS 2 bag (MCAP): joint states, commands, images, ticks, episodes.",
-)
+@MCAP_OPTION
 @click.option("--otlp-endpoint", metavar="URL", default=None, help="Export telemetry over OTLP to this collector.")
 @click.pass_context
 def record(

@@ -18,6 +18,21 @@ from openral_cli.errors import exit_codes
 from openral_core import RobotEnvironment, ROSConfigError
 from openral_hal.manifests import load_robot_manifest
 
+MCAP_OPTION = click.option(
+    "--mcap",
+    "rosbag",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="Also write the session as a ROS 2 bag (MCAP, profile ros2): joint states, commands, images, ticks.",
+)
+VCODEC_OPTION = click.option(
+    "--vcodec",
+    type=click.Choice(["libsvtav1", "h264"]),
+    default="libsvtav1",
+    show_default=True,
+    help="Video codec of the recorded cameras.",
+)
+
 
 def build_recorder(env: RobotEnvironment, dataset_out: Path, *, resume: bool, vcodec: str) -> Any:
     """A ``RolloutRecorder`` writing ``env``'s robot and cameras to ``dataset_out`` at the tick rate.
