@@ -81,12 +81,14 @@ def check_dataset(root: Path, *, decode_videos: bool = True) -> CheckReport:
         problems.append(f"{layout.TASKS_PATH}: {len(tasks)} task(s), info.json says {info['total_tasks']}")
     task_of = {index: task for task, index in tasks.items()}
     next_index = 0
+    meta_schema: Any = None
     for episode in range(episodes):
         lengths = _check_episode(
             root, episode, fps=fps, first_index=next_index, task_of=task_of, video_keys=video_keys, problems=problems
         )
         if lengths is None:
             return report
+        meta_schema = _check_same_schema(root, episode, meta_schema, problems)
         next_index += lengths
         if decode_videos:
             for key in video_keys:
@@ -152,6 +154,9 @@ def _check_episode(
         return None
     name = data_path.relative_to(root)
     n = int(data.num_rows)
+    nulls = {c: data.column(c).null_count for c in data.column_names if data.column(c).null_count}
+    if nulls:
+        problems.append(f"{name}: null values {nulls} (LeRobot's batch collation refuses them)")
     columns: dict[str, Any] = {c: data.column(c).to_numpy(zero_copy_only=False) for c in schema.DEFAULT_COLUMNS}
     if not np.array_equal(columns["index"], np.arange(first_index, first_index + n)):
         problems.append(f"{name}: index is not contiguous from {first_index}")
@@ -160,7 +165,7 @@ def _check_episode(
     if not np.all(columns["episode_index"] == episode):
         problems.append(f"{name}: rows of another episode")
     grid = np.arange(n, dtype=np.float64) / fps
-    if not np.allclose(columns["timestamp"].astype(np.float64), grid, atol=TIME_TOLERANCE_S / 2, rtol=0):
+    if not np.allclose(columns["timestamp"].astype(np.float64), grid, atol=TIME_TOLERANCE_S, rtol=0):
         problems.append(f"{name}: timestamp is not frame_index / fps")
     if len(meta) != 1:
         problems.append(f"{meta_path.relative_to(root)}: {len(meta)} rows, expected 1")
@@ -184,6 +189,15 @@ def _check_episode(
         if end is None or abs(end - n / fps) > TIME_TOLERANCE_S:
             problems.append(f"{meta_path.relative_to(root)}: videos/{key}/to_timestamp {end}, expected {n / fps}")
     return n
+
+
+def _check_same_schema(root: Path, episode: int, first: Any, problems: list[str]) -> Any:
+    """Every episode's metadata has episode 0's schema: LeRobot concatenates them into one table."""
+    path = layout.episodes_file(root, episode)
+    found = pq.read_schema(path).remove_metadata()
+    if first is not None and not found.equals(first):
+        problems.append(f"{path.relative_to(root)}: its schema differs from episode 0's (LeRobot concatenates them)")
+    return first if first is not None else found
 
 
 def _check_video(path: Path, rows: int, fps: int, problems: list[str]) -> None:

@@ -35,6 +35,11 @@ TRACE_ID: Final = "openral.trace_id"
 SPAN_ID: Final = "openral.span_id"
 
 _SCALARS: Final = {"int64": pa.int64(), "float32": pa.float32(), "bool": pa.bool_(), "string": pa.string()}
+_ABSENT: Final[dict[str, Any]] = {"int64": -1, "float32": float("nan"), "bool": False, "string": ""}
+
+TIMESTAMP_EXACT_S: Final = 2048.0
+"""How long an episode may run before its float32 ``timestamp`` (LeRobot's dtype) can sit more than
+LeRobot's 1e-4 s tolerance off the ``1 / fps`` grid: from 2048 s on, half a float32 step exceeds it."""
 
 
 def camera_column(camera: str, what: str) -> str:
@@ -113,6 +118,54 @@ def arrow_schema(feature_block: dict[str, dict[str, Any]]) -> pa.Schema:
             fields.append(pa.field(name, scalar))
         else:
             fields.append(pa.field(name, pa.list_(scalar, shape[0])))
+    return pa.schema(fields)
+
+
+def absent_values(feature_block: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """What a data column holds where a tick had no value: never null, since LeRobot's collate refuses nulls.
+
+    ``""`` for strings (no withheld reason, an untraced tick), ``-1`` for integers (no camera frame
+    yet), ``NaN`` for floats and vectors (no requested action), ``False`` for flags.
+    """
+    out: dict[str, Any] = {}
+    for name, spec in feature_block.items():
+        if spec["dtype"] == "video":
+            continue
+        value = _ABSENT[spec["dtype"]]
+        out[name] = value if spec["shape"] == [1] else [value] * spec["shape"][0]
+    return out
+
+
+def episode_schema(feature_block: dict[str, dict[str, Any]], stat_names: Sequence[str]) -> pa.Schema:
+    """The schema of ``meta/episodes`` rows: the same for every episode, so LeRobot can concatenate them."""
+    fields = [
+        pa.field("episode_index", pa.int64()),
+        pa.field("tasks", pa.list_(pa.string())),
+        pa.field("length", pa.int64()),
+        pa.field("data/chunk_index", pa.int64()),
+        pa.field("data/file_index", pa.int64()),
+        pa.field("dataset_from_index", pa.int64()),
+        pa.field("dataset_to_index", pa.int64()),
+    ]
+    videos = [name for name, spec in feature_block.items() if spec["dtype"] == "video"]
+    for key in videos:
+        fields += [
+            pa.field(f"videos/{key}/chunk_index", pa.int64()),
+            pa.field(f"videos/{key}/file_index", pa.int64()),
+            pa.field(f"videos/{key}/from_timestamp", pa.float64()),
+            pa.field(f"videos/{key}/to_timestamp", pa.float64()),
+        ]
+    fields += [pa.field("meta/episodes/chunk_index", pa.int64()), pa.field("meta/episodes/file_index", pa.int64())]
+    image_value = pa.list_(pa.list_(pa.list_(pa.float64())))
+    for feature in (STATE, ACTION, *DEFAULT_COLUMNS, *videos):
+        for stat in stat_names:
+            if stat == "count":
+                value = pa.list_(pa.int64())
+            else:
+                value = image_value if feature in videos else pa.list_(pa.float64())
+            fields.append(pa.field(f"stats/{feature}/{stat}", value))
+    fields.append(pa.field("openral.success", pa.bool_(), nullable=True))
+    fields += [pa.field(f"openral.{key.removeprefix(IMAGE_PREFIX)}.repeated_frames", pa.int64()) for key in videos]
     return pa.schema(fields)
 
 

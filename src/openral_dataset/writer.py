@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SensorFrame
+from openral_core import FrameEncoding, ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SensorFrame
 from openral_dataset import layout, schema, stats
 from openral_dataset.video import EncoderProcess, OverflowPolicy, StreamingVideoEncoder
 
@@ -57,6 +57,7 @@ class _Episode:
     sample_stride: dict[str, int] = field(default_factory=dict)
     unsized: dict[str, int] = field(default_factory=dict)
     failed: bool = False
+    long_warned: bool = False
 
 
 class LeRobotDatasetSink:
@@ -101,6 +102,7 @@ class LeRobotDatasetSink:
         self.overflow = OverflowPolicy(overflow)
         self.features = schema.features(self.joint_names, self.cameras, fps=fps, vcodec=vcodec)
         self._arrow = schema.arrow_schema(self.features)
+        self._absent = schema.absent_values(self.features)
         self._episode: _Episode | None = None
         self._processes: dict[str, EncoderProcess] = {}
         self._tasks: dict[str, int] = {}
@@ -155,8 +157,8 @@ class LeRobotDatasetSink:
             problems.append(f"codebase_version {info.get('codebase_version')!r}, not {layout.CODEBASE_VERSION!r}")
         if info.get("fps") != self.fps:
             problems.append(f"fps {info.get('fps')} (this recording: {self.fps})")
-        theirs = {k: (v["dtype"], v["shape"]) for k, v in info.get("features", {}).items()}
-        ours = {k: (v["dtype"], v["shape"]) for k, v in self.features.items()}
+        theirs = {k: _signature(v) for k, v in info.get("features", {}).items()}
+        ours = {k: _signature(v) for k, v in self.features.items()}
         if theirs != ours:
             missing = sorted(set(ours) - set(theirs))
             extra = sorted(set(theirs) - set(ours))
@@ -230,9 +232,17 @@ class LeRobotDatasetSink:
         row["episode_index"] = episode.idx
         row["index"] = self.total_frames + frame_index
         row["task_index"] = episode.task_index
-        columns = episode.rows
-        for name in columns:
-            columns[name].append(row.get(name))
+        if frame_index / self.fps >= schema.TIMESTAMP_EXACT_S and not episode.long_warned:
+            episode.long_warned = True
+            _log.warning(
+                "episode longer than float32 timestamps resolve within LeRobot's tolerance; end episodes sooner",
+                episode=episode.idx,
+                limit_s=schema.TIMESTAMP_EXACT_S,
+            )
+        absent = self._absent
+        for name, values in episode.rows.items():
+            value = row.get(name)
+            values.append(absent[name] if value is None else value)
 
     def _start_encoder(self, episode: _Episode, index: int, frame: SensorFrame | None) -> StreamingVideoEncoder | None:
         """The episode's encoder for camera ``index``; ``None`` while its size is unknown and no frame came."""
@@ -385,9 +395,9 @@ class LeRobotDatasetSink:
             values = np.asarray(column.to_pylist(), dtype=np.float64)
             out[name] = stats.vector_stats(values)
         for cam in self.cameras:
-            samples = episode.samples.get(cam.sensor_id)
-            if samples:
-                out[schema.video_key(cam.sensor_id)] = stats.image_stats(samples, len(table))
+            # No sample means the video holds only black filler frames: their statistics are zeros.
+            samples = episode.samples.get(cam.sensor_id) or [np.zeros((1, 1, 3), np.uint8)]
+            out[schema.video_key(cam.sensor_id)] = stats.image_stats(samples, len(table))
         return out
 
     def _episode_row(
@@ -417,7 +427,7 @@ class LeRobotDatasetSink:
         row["openral.success"] = [success]
         for cam in self.cameras:
             row[f"openral.{cam.sensor_id}.repeated_frames"] = [episode.encoders[cam.sensor_id].repeated]
-        return pa.table(row)
+        return pa.table(row, schema=schema.episode_schema(self.features, stats.STAT_NAMES))
 
     @staticmethod
     def _sample(episode: _Episode, camera: str, frame: SensorFrame, frame_index: int) -> None:
@@ -426,13 +436,30 @@ class LeRobotDatasetSink:
         if frame_index % stride:
             return
         samples = episode.samples.setdefault(camera, [])
-        array = frame.as_array()
-        if array.ndim != 3 or array.shape[2] < 3:
-            return
-        samples.append(np.asarray(array[:: stats.IMAGE_SAMPLE_STRIDE, :: stats.IMAGE_SAMPLE_STRIDE, :3]).copy())
+        samples.append(_rgb_sample(frame))
         if len(samples) >= 2 * stats.IMAGE_SAMPLE_FRAMES:
             del samples[1::2]
             episode.sample_stride[camera] = stride * 2
+
+
+def _rgb_sample(frame: SensorFrame) -> np.ndarray:
+    """A subsampled ``[h, w, 3]`` RGB copy of a frame, as the video decodes it (grey repeated, BGR swapped)."""
+    step = stats.IMAGE_SAMPLE_STRIDE
+    array = frame.as_array()
+    if array.ndim == 2:
+        array = array[:, :, None]
+    small = np.asarray(array[::step, ::step])
+    if small.shape[2] == 1:
+        return np.repeat(small, 3, axis=2)
+    if frame.encoding in (FrameEncoding.BGR8, FrameEncoding.BGRA8):
+        return np.ascontiguousarray(small[:, :, 2::-1])
+    return np.ascontiguousarray(small[:, :, :3])
+
+
+def _signature(feature: dict[str, Any]) -> tuple[Any, ...]:
+    """What must match for two recordings to share a dataset: dtype, shape and, for videos, codec and pixels."""
+    video = feature.get("info") or {}
+    return (feature["dtype"], feature["shape"], video.get("video.codec"), video.get("video.pix_fmt"))
 
 
 def tasks_parquet_bytes(tasks: dict[str, int]) -> bytes:
