@@ -24,6 +24,9 @@ HEAVY = [
     "zenoh",
     "foxglove",
     "mcap",
+    "ray",
+    "metaworld",
+    "gym_pusht",
 ]
 
 
@@ -38,6 +41,8 @@ HEAVY = [
         "openral_runner",
         "openral_runner.factory",
         "openral_cli.main",
+        "openral_sim.runner",
+        "openral_sim.evaluation",
     ],
 )
 def test_import_loads_no_heavy_library(package: str) -> None:
@@ -74,7 +79,7 @@ sys.meta_path.insert(0, Blocker())
 from openral_core import ROSDependencyMissing
 
 failed = {}
-for group in ("openral.skills", "openral.hals", "openral.sensor_backends", "openral.safety_clients"):
+for group in ("openral.skills", "openral.hals", "openral.sensor_backends", "openral.safety_clients", "openral.sim_envs"):
     for ep in importlib.metadata.entry_points(group=group):
         try:
             ep.load()
@@ -90,6 +95,10 @@ NEEDS_A_HEAVY_LIBRARY = {
     "openral.sensor_backends:mujoco_camera": ("mujoco", "twin"),
     "openral.sensor_backends:opencv_thread": ("cv2", "opencv"),
     "openral.sensor_backends:gstreamer": ("gi", "gstreamer"),
+    "openral.skills:metaworld_expert": ("mujoco", "sim"),
+    "openral.sim_envs:so101": ("mujoco", "twin"),
+    "openral.sim_envs:metaworld": ("mujoco", "twin"),
+    "openral.sim_envs:pusht": ("cv2", "opencv"),
 }
 
 

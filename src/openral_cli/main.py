@@ -27,6 +27,7 @@ from openral_cli.recording import (
 )
 from openral_cli.session import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.signals import StopSignals
+from openral_cli.sim import benchmark, sim
 from openral_cli.status import LiveStatus
 from openral_core import (
     RobotEnvironment,
@@ -364,6 +365,8 @@ def calibrate(
 cli.add_command(dataset)
 cli.add_command(record)
 cli.add_command(replay)
+cli.add_command(sim)
+cli.add_command(benchmark)
 
 
 def main() -> None:

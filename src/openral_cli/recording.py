@@ -15,7 +15,7 @@ import click
 from PIL import Image
 
 from openral_cli.errors import exit_codes
-from openral_core import RobotEnvironment, ROSConfigError
+from openral_core import RobotEnvironment, ROSConfigError, SimEnvironment
 from openral_hal.manifests import load_robot_manifest
 
 MCAP_OPTION = click.option(
@@ -63,6 +63,37 @@ def build_recorder(env: RobotEnvironment, dataset_out: Path, *, resume: bool, vc
         resume=resume,
     )
     return recorder_module.RolloutRecorder(sink, joint_names=robot.joint_names)
+
+
+def build_sim_recorder(scene: SimEnvironment, spec: Any, dataset_out: Path, *, resume: bool, vcodec: str) -> Any:
+    """A ``RolloutRecorder`` for simulated episodes: the env's state and action names, its object state, the cameras.
+
+    Raises:
+        ROSConfigError: The env's control rate is not a whole number, or the dataset cannot be opened.
+        ROSDependencyMissing: The ``dataset`` extra is not installed.
+    """
+    if not math.isclose(spec.control_hz, round(spec.control_hz)):
+        raise ROSConfigError(
+            f"a dataset records whole frames per second; {scene.env} steps at {spec.control_hz:g} Hz",
+            field="--dataset-out",
+        )
+    writer = importlib.import_module("openral_dataset.writer")
+    recorder_module = importlib.import_module("openral_dataset.recorder")
+    schema = importlib.import_module("openral_dataset.schema")
+    video = importlib.import_module("openral_dataset.video")
+    sink = writer.LeRobotDatasetSink(
+        dataset_out,
+        fps=round(spec.control_hz),
+        robot_type=scene.robot or scene.env_id or scene.env,
+        joint_names=list(spec.state_names),
+        action_names=list(spec.action_names),
+        environment_state_names=list(spec.environment_state_names),
+        cameras=[schema.CameraSpec(c.name, c.width, c.height) for c in scene.cameras],
+        vcodec=vcodec,
+        overflow=video.OverflowPolicy.WAIT,  # a simulation waits for its encoders: no frame is repeated
+        resume=resume,
+    )
+    return recorder_module.RolloutRecorder(sink, joint_names=list(spec.state_names))
 
 
 def build_rosbag(env: RobotEnvironment, path: Path, *, deployment: Path | None) -> Any:

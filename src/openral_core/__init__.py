@@ -34,14 +34,27 @@ from openral_core.errors import (
 from openral_core.frames import FrameEncoding, SensorFrame
 from openral_core.results import RunResult, StopReason, TickResult, WithheldReason
 from openral_core.robot import JointKind, JointSpec, ModelRef, RobotManifest
+from openral_core.sim import (
+    BenchmarkRun,
+    BenchmarkSuite,
+    EpisodeResult,
+    EpisodeTiming,
+    PrivilegedState,
+    SimCamera,
+    SimEnvironment,
+)
 from openral_core.skills import RSkillInfo, RSkillState
 from openral_core.world import ComponentDiagnostics, JointState, Pose6D, WorldState
 
 __all__ = [
     "Action",
+    "BenchmarkRun",
+    "BenchmarkSuite",
     "ComponentDiagnostics",
     "ControlMode",
     "DeadlineOverrunPolicy",
+    "EpisodeResult",
+    "EpisodeTiming",
     "FaultPolicy",
     "FrameEncoding",
     "GarbageCollection",
@@ -52,6 +65,7 @@ __all__ = [
     "ModelRef",
     "ObserverConfig",
     "Pose6D",
+    "PrivilegedState",
     "ROSConfigError",
     "ROSDeadlineMissed",
     "ROSDependencyMissing",
@@ -77,6 +91,8 @@ __all__ = [
     "SensorFrame",
     "SensorReaderBackend",
     "SensorReaderConfig",
+    "SimCamera",
+    "SimEnvironment",
     "StopReason",
     "SyncConfig",
     "TaskSpec",

@@ -7,6 +7,7 @@ from typing import Self
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from openral_core.frames import SensorFrame
+from openral_core.sim import PrivilegedState
 
 
 class JointState(BaseModel):
@@ -95,6 +96,8 @@ class WorldState(BaseModel):
     image_frames: dict[str, SensorFrame] | None = None
     diagnostics: dict[str, ComponentDiagnostics] = Field(default_factory=dict)
     task: str | None = None
+    privileged: PrivilegedState | None = None
+    """Simulation only: what the simulator knows and a robot cannot measure (``None`` on hardware)."""
 
     @property
     def stale_components(self) -> list[str]:

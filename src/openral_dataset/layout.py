@@ -22,6 +22,8 @@ EPISODES_PATH: Final = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:0
 INFO_PATH: Final = "meta/info.json"
 TASKS_PATH: Final = "meta/tasks.parquet"
 STATS_PATH: Final = "meta/stats.json"
+OUTCOMES_PATH: Final = "meta/openral_episodes.jsonl"
+"""What LeRobot's episode rows have no column for: each episode's success and repeated frames, one JSON line each."""
 STAGING_DIR: Final = ".openral-staging"
 """Where an episode is written before it is committed: outside ``data/``, ``meta/`` and ``videos/``."""
 

@@ -36,7 +36,8 @@ class RolloutRecorder(QueuedObserver):
 
     Args:
         sink: Where episodes go.
-        joint_names: The order of the state and action vectors (the robot manifest's joints).
+        joint_names: The order of the state vector (the robot manifest's joints, or a simulator's
+            state names); the action's order is the sink's.
         max_queue: Ticks held for the worker before the oldest is dropped (and counted).
     """
 
@@ -70,7 +71,7 @@ class RolloutRecorder(QueuedObserver):
     # -- worker ----------------------------------------------------------------------------
 
     def on_overflow(self, tick: TickResult) -> None:
-        if tick.episode_idx is not None:
+        if tick.step_idx is not None:
             self.dropped_ticks += 1
             metrics.add(semconv.METRIC_RECORDING_DROPPED_TICKS)
 
@@ -94,14 +95,14 @@ class RolloutRecorder(QueuedObserver):
         )
 
     def handle_tick(self, tick: TickResult, world: WorldState | None) -> None:
-        if not self.sink.episode_open or tick.episode_idx is None:
-            return
+        if not self.sink.episode_open or tick.step_idx is None:
+            return  # between episodes (a simulator's reset tick included)
         state = self._measured_state(world)
         if state is None:
             return  # nothing measured yet: no row can say where the robot was
         if tick.action_applied and tick.sent_action is not None:
             self._held = list(tick.sent_action)
-        action = self._held if self._held is not None else state
+        action = self._held if self._held is not None else self._hold_default(state)
         trace_id, span_id = _ids(tick.trace_context)
         row: dict[str, Any] = {
             schema.STATE: state,
@@ -111,10 +112,12 @@ class RolloutRecorder(QueuedObserver):
             schema.LATENESS_MS: tick.lateness_ms,
             schema.ACTION_APPLIED: tick.action_applied,
             schema.WITHHELD_REASON: None if tick.withheld_reason is None else str(tick.withheld_reason),
-            schema.REQUESTED_ACTION: tick.requested_action or [math.nan] * len(self.joint_names),
+            schema.REQUESTED_ACTION: tick.requested_action or [math.nan] * len(self.sink.action_names),
             schema.TRACE_ID: trace_id,
             schema.SPAN_ID: span_id,
         }
+        if self.sink.environment_state_names and world is not None and world.privileged is not None:
+            row[schema.ENVIRONMENT_STATE] = world.privileged.get("environment_state")
         frames = dict(world.image_frames or {}) if world is not None else {}
         for cam in self.sink.cameras:
             frame = frames.get(cam.sensor_id)
@@ -145,6 +148,12 @@ class RolloutRecorder(QueuedObserver):
             # The run ended inside an episode (a stop, a fault): what was recorded is kept.
             self.handle_episode_end(-1, success=False, keep=True)
         self.sink.close()
+
+    def _hold_default(self, state: list[float]) -> list[float]:
+        """The target before any action was sent: the measured joints, or zeros for a non-joint action space."""
+        if self.sink.action_names == self.joint_names:
+            return state
+        return [0.0] * len(self.sink.action_names)
 
     def _measured_state(self, world: WorldState | None) -> list[float] | None:
         joints = None if world is None else world.joint_state

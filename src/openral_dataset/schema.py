@@ -21,6 +21,7 @@ except ImportError as exc:
 
 
 STATE: Final = "observation.state"
+ENVIRONMENT_STATE: Final = "observation.environment_state"
 ACTION: Final = "action"
 IMAGE_PREFIX: Final = "observation.images."
 DEFAULT_COLUMNS: Final = ("timestamp", "frame_index", "episode_index", "index", "task_index")
@@ -62,15 +63,31 @@ class CameraSpec:
 
 
 def features(
-    joint_names: Sequence[str], cameras: Sequence[CameraSpec], *, fps: int, vcodec: str
+    joint_names: Sequence[str],
+    cameras: Sequence[CameraSpec],
+    *,
+    fps: int,
+    vcodec: str,
+    action_names: Sequence[str] | None = None,
+    environment_state_names: Sequence[str] = (),
 ) -> dict[str, dict[str, Any]]:
-    """The ``features`` block of ``meta/info.json``, in column order, the five defaults last."""
+    """The ``features`` block of ``meta/info.json``, in column order, the five defaults last.
+
+    Args:
+        joint_names: Names of ``observation.state``.
+        action_names: Names of ``action`` (the joints by default: a robot commanded in joint space).
+        environment_state_names: Names of ``observation.environment_state`` (a simulator's object
+            state), recorded only when given.
+    """
     joints = list(joint_names)
-    n = len(joints)
+    actions = joints if action_names is None else list(action_names)
     out: dict[str, dict[str, Any]] = {
-        STATE: {"dtype": "float32", "shape": [n], "names": joints},
-        ACTION: {"dtype": "float32", "shape": [n], "names": joints},
+        STATE: {"dtype": "float32", "shape": [len(joints)], "names": joints},
     }
+    if environment_state_names:
+        names = list(environment_state_names)
+        out[ENVIRONMENT_STATE] = {"dtype": "float32", "shape": [len(names)], "names": names}
+    out[ACTION] = {"dtype": "float32", "shape": [len(actions)], "names": actions}
     for cam in cameras:
         out[video_key(cam.sensor_id)] = {
             "dtype": "video",
@@ -92,7 +109,7 @@ def features(
     out[LATENESS_MS] = _scalar("float32")
     out[ACTION_APPLIED] = _scalar("bool")
     out[WITHHELD_REASON] = _scalar("string")
-    out[REQUESTED_ACTION] = {"dtype": "float32", "shape": [n], "names": joints}
+    out[REQUESTED_ACTION] = {"dtype": "float32", "shape": [len(actions)], "names": actions}
     out[TRACE_ID] = _scalar("string")
     out[SPAN_ID] = _scalar("string")
     for cam in cameras:
@@ -136,6 +153,16 @@ def absent_values(feature_block: dict[str, dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def stat_features(feature_block: dict[str, dict[str, Any]]) -> list[str]:
+    """The features LeRobot keeps statistics of: every one but text, videos last.
+
+    LeRobot appends episodes only to a dataset whose episode rows have exactly the columns it
+    writes itself, statistics of every numeric and boolean feature included.
+    """
+    plain = [name for name, spec in feature_block.items() if spec["dtype"] not in ("string", "video")]
+    return plain + [name for name, spec in feature_block.items() if spec["dtype"] == "video"]
+
+
 def episode_schema(feature_block: dict[str, dict[str, Any]], stat_names: Sequence[str]) -> pa.Schema:
     """The schema of ``meta/episodes`` rows: the same for every episode, so LeRobot can concatenate them."""
     fields = [
@@ -157,15 +184,13 @@ def episode_schema(feature_block: dict[str, dict[str, Any]], stat_names: Sequenc
         ]
     fields += [pa.field("meta/episodes/chunk_index", pa.int64()), pa.field("meta/episodes/file_index", pa.int64())]
     image_value = pa.list_(pa.list_(pa.list_(pa.float64())))
-    for feature in (STATE, ACTION, *DEFAULT_COLUMNS, *videos):
+    for feature in stat_features(feature_block):
         for stat in stat_names:
             if stat == "count":
                 value = pa.list_(pa.int64())
             else:
                 value = image_value if feature in videos else pa.list_(pa.float64())
             fields.append(pa.field(f"stats/{feature}/{stat}", value))
-    fields.append(pa.field("openral.success", pa.bool_(), nullable=True))
-    fields += [pa.field(f"openral.{key.removeprefix(IMAGE_PREFIX)}.repeated_frames", pa.int64()) for key in videos]
     return pa.schema(fields)
 
 

@@ -21,20 +21,29 @@ IMAGE_SAMPLE_STRIDE: Final = 8
 
 
 def vector_stats(values: np.ndarray) -> dict[str, np.ndarray]:
-    """Statistics of a ``[frames, n]`` (or ``[frames]``) array, per column."""
+    """Statistics of a ``[frames, n]`` (or ``[frames]``) array, per column, over its finite values.
+
+    A value a tick did not have is recorded as NaN (a withheld action, a camera before its first
+    frame); it is left out rather than turning the column's statistics into NaN. A column with
+    no finite value at all has NaN statistics.
+    """
     data = np.asarray(values, dtype=np.float64)
     if data.ndim == 1:
         data = data[:, None]
-    stats = {
-        "min": data.min(axis=0),
-        "max": data.max(axis=0),
-        "mean": data.mean(axis=0),
-        "std": data.std(axis=0),
-        "count": np.array([len(data)]),
-    }
-    for name, q in QUANTILES.items():
-        stats[name] = np.quantile(data, q, axis=0)
-    return stats
+    columns = data.shape[1]
+    out = {name: np.full(columns, np.nan) for name in ("min", "max", "mean", "std", *QUANTILES)}
+    for column in range(columns):
+        finite = data[:, column][np.isfinite(data[:, column])]
+        if finite.size == 0:
+            continue
+        out["min"][column] = finite.min()
+        out["max"][column] = finite.max()
+        out["mean"][column] = finite.mean()
+        out["std"][column] = finite.std()
+        for name, q in QUANTILES.items():
+            out[name][column] = np.quantile(finite, q)
+    out["count"] = np.array([len(data)])
+    return out
 
 
 def image_stats(frames: Sequence[np.ndarray], total_frames: int) -> dict[str, np.ndarray]:
@@ -48,24 +57,35 @@ def image_stats(frames: Sequence[np.ndarray], total_frames: int) -> dict[str, np
 
 
 def merge_stats(parts: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Merge per-episode statistics of one feature with count weights (quantiles: weighted mean)."""
+    """Merge per-episode statistics of one feature with count weights (quantiles: weighted mean).
+
+    An element that is NaN in one episode (no finite value there) is merged from the others.
+    """
     counts = np.array([float(p["count"][0]) for p in parts])
-    weights = counts / counts.sum()
     means = np.stack([p["mean"] for p in parts])
-    stds = np.stack([p["std"] for p in parts])
     shape = (-1,) + (1,) * (means.ndim - 1)
-    w = weights.reshape(shape)
-    mean = (w * means).sum(axis=0)
-    variance = (w * (stds**2 + means**2)).sum(axis=0) - mean**2
-    merged = {
-        "min": np.min(np.stack([p["min"] for p in parts]), axis=0),
-        "max": np.max(np.stack([p["max"] for p in parts]), axis=0),
-        "mean": mean,
-        "std": np.sqrt(np.maximum(variance, 0.0)),
-        "count": np.array([int(counts.sum())]),
-    }
-    for name in QUANTILES:
-        merged[name] = (w * np.stack([p[name] for p in parts])).sum(axis=0)
+    present = np.isfinite(means)
+    weights = np.where(present, counts.reshape(shape), 0.0)
+    total = weights.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(total > 0, weights / np.where(total > 0, total, 1.0), 0.0)
+
+        def weighted(name: str) -> np.ndarray:
+            values = np.nan_to_num(np.stack([p[name] for p in parts]), nan=0.0)
+            return np.where(total > 0, (w * values).sum(axis=0), np.nan)
+
+        mean = weighted("mean")
+        stds = np.nan_to_num(np.stack([p["std"] for p in parts]), nan=0.0)
+        second = np.where(total > 0, (w * (stds**2 + np.nan_to_num(means) ** 2)).sum(axis=0), np.nan)
+        merged = {
+            "min": np.fmin.reduce(np.stack([p["min"] for p in parts]), axis=0),
+            "max": np.fmax.reduce(np.stack([p["max"] for p in parts]), axis=0),
+            "mean": mean,
+            "std": np.sqrt(np.maximum(second - mean**2, 0.0)),
+            "count": np.array([int(counts.sum())]),
+        }
+        for name in QUANTILES:
+            merged[name] = weighted(name)
     return merged
 
 

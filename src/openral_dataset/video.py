@@ -16,6 +16,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from enum import StrEnum
 from multiprocessing import shared_memory
 from pathlib import Path
@@ -38,6 +39,8 @@ _INPUT_FORMAT: Final = {
 }
 _CHILD: Final = "openral_dataset.encoder_process"
 _COPY_BAND_BYTES: Final = 128 * 1024
+_WAIT_POLL_S: Final = 0.0005
+_WAIT_LIMIT_S: Final = 30.0
 DEFAULT_SLOTS: Final = 32
 """Frames a camera's encoder may fall behind by before frames are repeated (about 1 s at 30 fps)."""
 
@@ -49,6 +52,8 @@ class OverflowPolicy(StrEnum):
     """Repeat the previous frame in the video and flag the row: the episode survives."""
     FAIL = "fail"
     """Mark the episode failed: it is discarded instead of committed."""
+    WAIT = "wait"
+    """Wait for the encoder: for simulations, where no tick has a deadline and every frame must be kept."""
 
 
 def supported_codecs() -> list[str]:
@@ -230,7 +235,10 @@ class StreamingVideoEncoder:
             fmt = _INPUT_FORMAT.get(frame.encoding)
             if fmt is None:
                 raise ROSRuntimeError(f"frames encoded as {frame.encoding} cannot be recorded as video")
-            taken = self._process.put_frame(frame.as_array(), fmt)
+            pixels = frame.as_array()
+            taken = self._process.put_frame(pixels, fmt)
+            if not taken and self.overflow is OverflowPolicy.WAIT:
+                taken = self._wait_for_slot(pixels, fmt)
             if not taken and self.overflow is OverflowPolicy.FAIL:
                 self.failed = True
         if not taken:
@@ -238,6 +246,15 @@ class StreamingVideoEncoder:
             self._process.send(("repeat",))
         self.frames_sent += 1
         return taken
+
+    def _wait_for_slot(self, pixels: np.ndarray, fmt: str) -> bool:
+        """Retry until the encoder frees a slot (it always does, unless it died: then this raises)."""
+        deadline = time.monotonic() + _WAIT_LIMIT_S
+        while time.monotonic() < deadline:
+            time.sleep(_WAIT_POLL_S)
+            if self._process.put_frame(pixels, fmt):
+                return True
+        raise ROSRuntimeError(f"the video encoder of camera {self._process.name} took no frame for {_WAIT_LIMIT_S} s")
 
     def finish(self) -> int:
         """Encode what is queued, flush the encoder, close and sync the file.

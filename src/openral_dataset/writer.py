@@ -67,7 +67,12 @@ class LeRobotDatasetSink:
         root: The dataset folder (created if missing).
         fps: Frames per second: the recording's tick rate, an integer.
         robot_type: Recorded in ``info.json``.
-        joint_names: Names of the state and action vectors, from the robot manifest.
+        joint_names: Names of the state vector (and of the action, unless ``action_names``), from
+            the robot manifest.
+        action_names: Names of the action vector when it is not joint positions (a simulator's
+            action space).
+        environment_state_names: Names of a simulator's object state, recorded as
+            ``observation.environment_state``.
         cameras: Recorded cameras with their video size (0 x 0: the size of the camera's first frame).
         vcodec: ``libsvtav1`` (default) or ``h264``.
         overflow: What happens when a camera's encoder falls behind.
@@ -86,6 +91,8 @@ class LeRobotDatasetSink:
         fps: int,
         robot_type: str,
         joint_names: Sequence[str],
+        action_names: Sequence[str] | None = None,
+        environment_state_names: Sequence[str] = (),
         cameras: Sequence[schema.CameraSpec] = (),
         vcodec: str = "libsvtav1",
         overflow: OverflowPolicy = OverflowPolicy.REPEAT,
@@ -97,10 +104,12 @@ class LeRobotDatasetSink:
         self.fps = fps
         self.robot_type = robot_type
         self.joint_names = list(joint_names)
+        self.action_names = self.joint_names if action_names is None else list(action_names)
+        self.environment_state_names = list(environment_state_names)
         self.cameras = list(cameras)
         self.vcodec = vcodec
         self.overflow = OverflowPolicy(overflow)
-        self.features = schema.features(self.joint_names, self.cameras, fps=fps, vcodec=vcodec)
+        self.features = self._features()
         self._arrow = schema.arrow_schema(self.features)
         self._absent = schema.absent_values(self.features)
         self._episode: _Episode | None = None
@@ -108,9 +117,20 @@ class LeRobotDatasetSink:
         self._tasks: dict[str, int] = {}
         self._stats: list[dict[str, dict[str, np.ndarray]]] = []
         self._merged: dict[str, dict[str, np.ndarray]] = {}
+        self._outcomes: list[str] = []
         self.total_episodes = 0
         self.total_frames = 0
         self._open(resume)
+
+    def _features(self) -> dict[str, dict[str, Any]]:
+        return schema.features(
+            self.joint_names,
+            self.cameras,
+            fps=self.fps,
+            vcodec=self.vcodec,
+            action_names=self.action_names,
+            environment_state_names=self.environment_state_names,
+        )
 
     # -- opening ---------------------------------------------------------------------------
 
@@ -138,6 +158,7 @@ class LeRobotDatasetSink:
         self.total_episodes = int(info["total_episodes"])
         self.total_frames = int(info["total_frames"])
         self._tasks = read_tasks(self.root)
+        self._outcomes = read_outcome_lines(self.root, self.total_episodes)
         stats_path = self.root / layout.STATS_PATH
         if stats_path.exists():
             self._merged = stats.from_json(json.loads(stats_path.read_text(encoding="utf-8")))
@@ -149,7 +170,7 @@ class LeRobotDatasetSink:
             if not cam.width and spec is not None:
                 height, width, _channels = spec["shape"]
                 self.cameras[index] = schema.CameraSpec(cam.sensor_id, width, height)
-        self.features = schema.features(self.joint_names, self.cameras, fps=self.fps, vcodec=self.vcodec)
+        self.features = self._features()
 
     def _check_compatible(self, info: dict[str, Any]) -> None:
         problems = []
@@ -278,7 +299,7 @@ class LeRobotDatasetSink:
         """Fix a camera's video size from its first frame (even, as 4:2:0 video needs)."""
         cam = schema.CameraSpec(frame.sensor_id, frame.width - frame.width % 2, frame.height - frame.height % 2)
         self.cameras[index] = cam
-        self.features = schema.features(self.joint_names, self.cameras, fps=self.fps, vcodec=self.vcodec)
+        self.features = self._features()
         return cam
 
     def end_episode(self, *, keep: bool = True, success: bool | None = None) -> EpisodeSummary:
@@ -355,6 +376,13 @@ class LeRobotDatasetSink:
         layout.move_synced(meta_tmp, layout.episodes_file(self.root, episode.idx))
         shutil.rmtree(episode.folder, ignore_errors=True)
 
+        outcome = {
+            "episode_index": episode.idx,
+            "success": success,
+            "repeated_frames": {cam: enc.repeated for cam, enc in episode.encoders.items()},
+        }
+        self._outcomes.append(json.dumps(outcome))
+        layout.write_atomic(self.root / layout.OUTCOMES_PATH, ("\n".join(self._outcomes) + "\n").encode("utf-8"))
         tasks = dict(self._tasks)
         tasks.setdefault(episode.task, episode.task_index)
         layout.write_atomic(self.root / layout.TASKS_PATH, tasks_parquet_bytes(tasks))
@@ -390,10 +418,10 @@ class LeRobotDatasetSink:
 
     def _episode_stats(self, episode: _Episode, table: pa.Table) -> dict[str, dict[str, np.ndarray]]:
         out = {}
-        for name in (schema.STATE, schema.ACTION, *schema.DEFAULT_COLUMNS):
-            column = table.column(name)
-            values = np.asarray(column.to_pylist(), dtype=np.float64)
-            out[name] = stats.vector_stats(values)
+        for name in schema.stat_features(self.features):
+            if name in table.column_names:
+                values = np.asarray(table.column(name).to_pylist(), dtype=np.float64)
+                out[name] = stats.vector_stats(values)
         for cam in self.cameras:
             # No sample means the video holds only black filler frames: their statistics are zeros.
             samples = episode.samples.get(cam.sensor_id) or [np.zeros((1, 1, 3), np.uint8)]
@@ -424,9 +452,6 @@ class LeRobotDatasetSink:
         for feature, values in episode_stats.items():
             for name, value in values.items():
                 row[f"stats/{feature}/{name}"] = [np.asarray(value).tolist()]
-        row["openral.success"] = [success]
-        for cam in self.cameras:
-            row[f"openral.{cam.sensor_id}.repeated_frames"] = [episode.encoders[cam.sensor_id].repeated]
         return pa.table(row, schema=schema.episode_schema(self.features, stats.STAT_NAMES))
 
     @staticmethod
@@ -490,6 +515,15 @@ def tasks_parquet_bytes(tasks: dict[str, int]) -> bytes:
     sink = pa.BufferOutputStream()
     pq.write_table(table, sink)
     return bytes(sink.getvalue().to_pybytes())
+
+
+def read_outcome_lines(root: Path, committed: int) -> list[str]:
+    """The outcome lines of the committed episodes (a line of an episode never committed is dropped)."""
+    path = root / layout.OUTCOMES_PATH
+    if not path.exists():
+        return []
+    lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+    return [line for line in lines if json.loads(line).get("episode_index", committed) < committed]
 
 
 def read_tasks(root: Path) -> dict[str, int]:

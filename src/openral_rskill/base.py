@@ -88,6 +88,8 @@ class RSkillBase(ABC):
         self._last_step_ns = 0
         self._total_step_ns = 0
         self._max_step_ns = 0
+        self.episode_seed: int | None = None
+        """The seed of the episode under way, when the runner gives one (see :meth:`reset`)."""
 
     # -- identity ---------------------------------------------------------------------------
 
@@ -164,15 +166,21 @@ class RSkillBase(ABC):
         self._run_hook("deactivate", self._on_deactivate)
         self._state = _S.INACTIVE
 
-    def reset(self) -> None:
+    def reset(self, *, seed: int | None = None) -> None:
         """Start a new episode in the current state (``ACTIVE`` or ``INACTIVE``): run ``_on_reset``.
 
         Does not clear the error latch; use :meth:`recover` for that.
+
+        Args:
+            seed: The episode's seed (a simulation's), kept in :attr:`episode_seed` for
+                ``_on_reset``: a skill that draws random numbers seeds its generator from it, so
+                an episode's outcome depends on its seed alone.
 
         Raises:
             ROSSkillError: Wrong state, or the hook failed (the skill is then in ``ERROR``).
         """
         self._require("reset", (_S.ACTIVE, _S.INACTIVE))
+        self.episode_seed = seed
         self._run_hook("reset", self._on_reset)
 
     def recover(self) -> None:

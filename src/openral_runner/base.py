@@ -17,6 +17,7 @@ owns everything around one tick and builds its ``TickResult`` once:
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
@@ -74,6 +75,9 @@ class InferenceRunnerBase(ABC):
         max_consecutive_failures: Faulted ticks in a row that end the run safely.
         garbage_collection: When Python's garbage collector may run during ``run()``; by default
             only in the idle time between ticks (:mod:`openral_runner.gc_policy`).
+        free_running: Start each tick as soon as the previous one ends, with no slots and no
+            deadline (a simulation evaluated as fast as it steps); ``rate_hz`` then only names the
+            control rate.
     """
 
     def __init__(
@@ -88,6 +92,7 @@ class InferenceRunnerBase(ABC):
         skill_id: str | None = None,
         max_consecutive_failures: int = 5,
         garbage_collection: GarbageCollection = GarbageCollection.BETWEEN_TICKS,
+        free_running: bool = False,
     ) -> None:
         if not rate_hz > 0:
             raise ROSConfigError(f"must be positive, got {rate_hz}", field="rate_hz")
@@ -102,6 +107,7 @@ class InferenceRunnerBase(ABC):
         self.skill_id = skill_id
         self.max_consecutive_failures = max_consecutive_failures
         self.garbage_collection = GarbageCollection(garbage_collection)
+        self.free_running = free_running
         self._clock: Clock = clock or SystemClock()
         self._active = False
         self._tick_idx = 0
@@ -427,11 +433,11 @@ class InferenceRunnerBase(ABC):
                 break
             if max_ticks is not None and n >= max_ticks:
                 break
-            slot_start = t0 + slot * period
+            slot_start = clock.now() if self.free_running else t0 + slot * period
             if end_limit is not None and slot_start >= end_limit:
                 stop_reason = StopReason.DURATION
                 break
-            tick = self._next_tick(slot_start, slot_start + period)
+            tick = self._next_tick(slot_start, math.inf if self.free_running else slot_start + period)
             try:
                 self._run_tick(tick, slot_start_s=slot_start)
             except ROSDeadlineMissed as exc:
@@ -448,6 +454,10 @@ class InferenceRunnerBase(ABC):
             if self._should_terminate():
                 stop_reason = StopReason.TERMINATED
                 break
+            if self.free_running:  # no idle time: collect whenever a generation is due
+                if collector is not None:
+                    collector.collect_if_due(math.inf)
+                continue
             next_slot = slot + 1
             if end > t0 + next_slot * period:
                 next_slot = int((end - t0) / period) + 1

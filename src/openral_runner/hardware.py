@@ -15,34 +15,27 @@ from contextlib import ExitStack
 from typing import Any
 
 import structlog
-from opentelemetry import context, trace
-from opentelemetry.trace import Status, StatusCode
 
 from openral_core import (
     Action,
     RealtimeConfig,
     ROSConfigError,
     ROSError,
-    ROSEStopRequested,
     ROSPerceptionStale,
     ROSRuntimeError,
-    ROSSafetyViolation,
-    ROSStopRequested,
     ROSSyncError,
     SensorFrame,
-    StopReason,
     SyncConfig,
     WithheldReason,
 )
-from openral_core.actions import action_problem
 from openral_hal.protocol import HAL
 from openral_observability import metrics, semconv, tracer
 from openral_rskill.base import RSkillBase
-from openral_runner.base import InferenceRunnerBase
 from openral_runner.observer import TickObserver
 from openral_runner.realtime import apply_realtime
-from openral_runner.safety import NullSafetyClient, SafetyClient
+from openral_runner.safety import SafetyClient
 from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
+from openral_runner.skill_runner import SkillRunnerBase, record_error
 from openral_runner.thumbnails import ThumbnailPublisher, ThumbnailSubscriber
 from openral_runner.tick_context import TickContext
 from openral_world_state import WorldStateAggregator
@@ -53,7 +46,7 @@ _PHASE_MARGIN_S = 0.002
 """Slack between a camera frame's arrival and the tick that reads it, for capture-thread jitter."""
 
 
-class HardwareRunner(InferenceRunnerBase):
+class HardwareRunner(SkillRunnerBase):
     """Closes the loop on a robot (or its twin).
 
     The caller configures and activates the skill; the runner opens and closes the HAL and
@@ -92,14 +85,10 @@ class HardwareRunner(InferenceRunnerBase):
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("runner_name", "hardware_runner")
-        base_kwargs.setdefault("skill_id", skill.info.skill_id)
-        super().__init__(**base_kwargs)
+        super().__init__(skill=skill, safety_client=safety_client, task=task, recorder=recorder, **base_kwargs)
         self.hal = hal
-        self.skill = skill
         self.aggregator = aggregator
         self.sensor_readers = list(sensor_readers)
-        self.safety_client: SafetyClient = safety_client or NullSafetyClient()
-        self.task = task
         self.realtime = realtime
         self.sync = sync
         if not (math.isfinite(thumbnail_hz) and thumbnail_hz >= 0):
@@ -118,30 +107,12 @@ class HardwareRunner(InferenceRunnerBase):
         self._episode_idx = -1
         self._episode_open = False
         self._episode_start_tick = 0
-        self.recorder: TickObserver | None = None
-        if recorder is not None:
-            self.attach_recorder(recorder)
         self._hal_attrs = {
             semconv.ATTR_HAL_ADAPTER: type(hal).__name__.lower(),
             semconv.ATTR_HAL_ROBOT_MODEL: hal.robot_id,
         }
         self._sensor_attrs = {r.sensor_id: {semconv.ATTR_SENSOR_ID: r.sensor_id} for r in self.sensor_readers}
         # Durations measured here are never negative: recorded on the instruments directly.
-
-    def attach_recorder(self, recorder: TickObserver) -> None:
-        """Make ``recorder`` the runner's recorder: its first observer, closed with the runner.
-
-        Raises:
-            ROSRuntimeError: The runner is active, or already has a recorder.
-        """
-        if self._opened is not None:
-            raise ROSRuntimeError("attach the recorder before activate()")
-        if self.recorder is not None:
-            raise ROSRuntimeError("the runner already has a recorder")
-        self.recorder = recorder
-        self.observers.insert(0, recorder)
-
-    # -- lifecycle -----------------------------------------------------------------------
 
     def activate(self) -> None:
         """Connect the HAL, then open every reader; on any failure close what was opened.
@@ -241,8 +212,7 @@ class HardwareRunner(InferenceRunnerBase):
         self.metadata.setdefault("episodes", []).append(
             {"episode_idx": self._episode_idx, "task": task_string, "start_tick": self._tick_idx}
         )
-        for observer in list(self.observers):
-            self._tell(observer, observer.on_episode_start, self._episode_idx, task_string)
+        self._tell_episode_start(self._episode_idx, task_string)
         return self._episode_idx
 
     def episode_end(self, *, success: bool, keep: bool = True) -> None:
@@ -259,8 +229,7 @@ class HardwareRunner(InferenceRunnerBase):
             raise ROSRuntimeError("no episode is open: call episode_start() first")
         self._episode_open = False
         self.metadata["episodes"][-1].update(success=success, kept=keep, end_tick=self._tick_idx)
-        for observer in list(self.observers):
-            self._tell(observer, observer.on_episode_end, self._episode_idx, success=success, keep=keep)
+        self._tell_episode_end(self._episode_idx, success=success, keep=keep)
 
     # -- the tick ------------------------------------------------------------------------
 
@@ -274,7 +243,6 @@ class HardwareRunner(InferenceRunnerBase):
         now = self._clock.now
         telemetry = self._telemetry
         start_span = telemetry.start_span
-        attach = self._spans_current  # decided once per tick by the base
         tick_idx = tick.tick_idx
         withheld: WithheldReason | None = None
         stale = tick.stale_sensors
@@ -296,7 +264,7 @@ class HardwareRunner(InferenceRunnerBase):
             self.safety_client.observe_state(state)
         except ROSError as exc:
             withheld = WithheldReason.READ_STATE
-            _record_error(span, exc)
+            record_error(span, exc)
             _log.warning("read_state failed", error=str(exc), tick=tick_idx)
         finally:
             span.end()
@@ -316,60 +284,12 @@ class HardwareRunner(InferenceRunnerBase):
         t2 = now()
         action: Action | None = None
         if withheld is None:
-            span = start_span(semconv.SPAN_SKILL_INFERENCE)
-            token = context.attach(trace.set_span_in_context(span)) if attach else None
-            try:
-                output = self.skill.step(world)
-                problem = action_problem(output)
-                if problem is None:
-                    action = output
-                else:
-                    withheld = WithheldReason.INVALID_ACTION
-                    self._on_invalid_action(span, problem, tick_idx)
-            except ROSEStopRequested as exc:
-                withheld = self._estop(exc)
-            except ROSStopRequested as exc:  # the skill's task is done: not a failure
-                withheld = WithheldReason.SKILL_DONE
-                span.add_event(semconv.EVENT_SKILL_DONE, {semconv.ATTR_EXCEPTION_MESSAGE: str(exc)})
-                _log.info("the skill finished its task; stopping", reason=str(exc), tick=tick_idx)
-                self.request_stop(StopReason.SKILL_DONE)
-            except Exception as exc:  # the skill is third-party code: any failure withholds
-                withheld = WithheldReason.SKILL_ERROR
-                _record_error(span, exc)
-                _log.warning("skill step failed", error=str(exc), tick=tick_idx)
-            finally:
-                if token is not None:
-                    context.detach(token)
-                span.end()
+            action, withheld = self._skill_phase(world, tick_idx)
 
         t3 = now()
         to_send: Action | None = None
         if action is not None:
-            span = start_span(semconv.SPAN_SAFETY_CHECK)
-            token = context.attach(trace.set_span_in_context(span)) if attach else None
-            try:
-                replacement = self.safety_client.check_action(action)
-                to_send = action if replacement is None else replacement
-                if span.is_recording():
-                    span.set_attributes(
-                        {
-                            semconv.ATTR_SAFETY_REQUESTED: action.first,
-                            semconv.ATTR_SAFETY_SENT: to_send.first,
-                            semconv.ATTR_SAFETY_REPLACED: replacement is not None,
-                        }
-                    )
-            except ROSSafetyViolation as exc:
-                withheld = WithheldReason.SAFETY
-                violations.append(exc.check_name)
-                if span.is_recording():
-                    span.set_attribute(semconv.ATTR_SAFETY_REQUESTED, action.first)
-                self._on_violation(span, exc)
-            except ROSEStopRequested as exc:
-                withheld = self._estop(exc)
-            finally:
-                if token is not None:
-                    context.detach(token)
-                span.end()
+            to_send, withheld = self._safety_phase(action, violations)
 
         t4 = now()
         applied = False
@@ -382,7 +302,7 @@ class HardwareRunner(InferenceRunnerBase):
                     self.safety_client.commit(to_send)
                 except ROSError as exc:
                     withheld = WithheldReason.HAL_ERROR
-                    _record_error(span, exc)
+                    record_error(span, exc)
                     _log.warning("send_action failed", error=str(exc), tick=tick_idx)
                 finally:
                     span.end()
@@ -453,7 +373,7 @@ class HardwareRunner(InferenceRunnerBase):
             self._on_stale(span, exc)
         except ROSError as exc:
             self.aggregator.set_error(reader.sensor_id, str(exc))
-            _record_error(span, exc)
+            record_error(span, exc)
         else:
             self._accept_frame(frame)
             age_ms = frame.age_ms(self._clock.now_ns())
@@ -472,36 +392,12 @@ class HardwareRunner(InferenceRunnerBase):
         span.add_event(semconv.EVENT_SENSOR_STALE, attrs)
         metrics.add(semconv.METRIC_SENSORS_STALE_READS, 1, {semconv.ATTR_SENSOR_ID: exc.sensor_id})
 
-    def _on_invalid_action(self, span: Any, problem: str, tick_idx: int) -> None:
-        """A skill returned something that is not a valid action: withheld, traced, counted as a skill fault."""
-        span.set_status(Status(StatusCode.ERROR, problem))
-        span.add_event(semconv.EVENT_INVALID_ACTION, {semconv.ATTR_EXCEPTION_MESSAGE: problem})
-        _log.warning("skill returned an invalid action; withheld", problem=problem, tick=tick_idx)
-
-    def _on_violation(self, span: trace.Span, exc: ROSSafetyViolation) -> None:
-        attrs = {semconv.ATTR_SAFETY_CHECK_NAME: exc.check_name, semconv.ATTR_SAFETY_SEVERITY: exc.severity}
-        span.record_exception(exc)
-        span.add_event(semconv.EVENT_SAFETY_VIOLATION, {**attrs, semconv.ATTR_EXCEPTION_MESSAGE: str(exc)})
-        metrics.add(semconv.METRIC_SAFETY_VIOLATIONS, 1, attrs)
-        _log.warning("action rejected by safety", check=exc.check_name, reason=str(exc))
-
-    def _estop(self, exc: ROSEStopRequested) -> WithheldReason:
-        """E-stop the robot and stop the loop; returns the withheld reason."""
-        span = trace.get_current_span()
-        span.add_event(semconv.EVENT_ESTOP_REQUESTED, {semconv.ATTR_ESTOP_REASON: str(exc)})
-        _log.error("e-stop requested", reason=str(exc))
+    def _estop_robot(self) -> None:
         estop_span = tracer().start_span(semconv.SPAN_HAL_ESTOP, attributes=self._hal_attrs)
         try:
             self.hal.estop()
         except Exception as estop_exc:  # still stop the loop even if the HAL cannot confirm
-            _record_error(estop_span, estop_exc)
+            record_error(estop_span, estop_exc)
             _log.error("HAL estop failed", error=str(estop_exc))
         finally:
             estop_span.end()
-        self.request_stop(StopReason.ESTOP)
-        return WithheldReason.ESTOP
-
-
-def _record_error(span: Any, exc: BaseException) -> None:
-    span.record_exception(exc)
-    span.set_status(Status(StatusCode.ERROR, str(exc)))

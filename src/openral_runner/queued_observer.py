@@ -11,6 +11,7 @@ order. The queue is bounded: when it is full the oldest tick is dropped, counted
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from typing import Any, Final
 
@@ -105,6 +106,21 @@ class QueuedObserver(TickObserver):
         if self._thread.is_alive():
             _log.error("observer did not drain in time", observer=self._thread.name, timeout_s=self._close_timeout_s)
         self._closed = True
+
+    def wait_for_room(self, timeout_s: float = 30.0) -> bool:
+        """Block until the worker has caught up to half the queue: for loops with no deadline (a simulation).
+
+        Returns:
+            ``False`` if it did not within ``timeout_s``.
+        """
+        deadline = time.monotonic() + timeout_s
+        while self.queued > self._wake_at:
+            if time.monotonic() >= deadline or not self._thread.is_alive():
+                return False
+            with self._cond:
+                self._cond.notify()
+            time.sleep(0.0005)
+        return True
 
     # -- subclass hooks (worker thread) ------------------------------------------------------
 

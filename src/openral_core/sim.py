@@ -1,0 +1,165 @@
+"""Simulation contracts: the scene file (``SimEnvironment``), the privileged state a sim exposes, episode outcomes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal, Self
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+SuccessKey = Literal["is_success", "succeed", "success"]
+"""The ``info`` keys simulators report success under (gym-pusht/LIBERO, lerobot-env-so101, MetaWorld)."""
+
+
+class SimCamera(BaseModel):
+    """A camera the environment renders each step, into ``WorldState.image_frames`` under its name."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(min_length=1, description="The camera's name in the environment's model (MJCF camera).")
+    width: int = Field(default=128, ge=8, le=4096)
+    height: int = Field(default=128, ge=8, le=4096)
+
+
+class SimEnvironment(BaseModel):
+    """A scene file: which environment, which task, how many episodes, what is rendered.
+
+    Episodes are independent units: episode ``i`` is reset with seed ``seed + i``, so a result
+    depends on the seed alone, not on the process or machine that ran it.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(min_length=1, description="Scene name, used in reports.")
+    env: str = Field(min_length=1, description="Environment plugin (entry-point group openral.sim_envs).")
+    env_id: str | None = Field(default=None, description="The environment's own task id (a gymnasium id, a task).")
+    env_kwargs: dict[str, Any] = Field(default_factory=dict, description="Keyword arguments for the environment.")
+    robot: str | None = Field(default=None, description="Robot manifest id the scene simulates, when it has one.")
+    task: str = Field(min_length=1, description="The task instruction placed in every world state.")
+    success_key: SuccessKey = Field(default="is_success", description="The info key that reports success.")
+    end_on_success: bool = Field(default=True, description="End an episode at its first successful step.")
+    max_steps: int = Field(ge=1, le=1_000_000, description="Steps after which an episode is cut off.")
+    n_episodes: int = Field(default=50, ge=1, le=1_000_000)
+    seed: int = Field(default=0, ge=0, description="Seed of episode 0; episode i uses seed + i.")
+    cameras: list[SimCamera] = Field(default_factory=list, description="Cameras rendered every step.")
+    rate_hz: float | None = Field(
+        default=None, gt=0, description="Pace ticks at this rate; by default free-running (as fast as the env steps)."
+    )
+    latency_budget_ms: float | None = Field(default=None, gt=0, description="Steps longer than this are counted.")
+
+    @field_validator("cameras")
+    @classmethod
+    def _unique_cameras(cls, cameras: list[SimCamera]) -> list[SimCamera]:
+        names = [c.name for c in cameras]
+        duplicate = sorted({n for n in names if names.count(n) > 1})
+        if duplicate:
+            raise ValueError(f"camera {duplicate[0]!r} is listed twice")
+        return cameras
+
+    @classmethod
+    def from_yaml(cls, path: Path) -> Self:
+        """Read and validate a scene file.
+
+        Raises:
+            ROSConfigError: Unreadable file or a bad field (named, with the fix).
+        """
+        from openral_core.config import load_model_yaml  # noqa: PLC0415
+
+        return load_model_yaml(cls, path, field="--config")
+
+
+class PrivilegedState(BaseModel):
+    """What a simulator knows and a robot cannot measure (object poses, goals, the full env state).
+
+    Only simulated world states carry it; a skill that reads it runs in simulation only.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    values: dict[str, list[float]] = Field(default_factory=dict)
+
+    def get(self, name: str) -> list[float]:
+        """One named quantity.
+
+        Raises:
+            KeyError: The environment does not expose it (the message lists what it does expose).
+        """
+        try:
+            return self.values[name]
+        except KeyError:
+            raise KeyError(f"no privileged value {name!r}; the environment exposes {sorted(self.values)}") from None
+
+
+class EpisodeTiming(BaseModel):
+    """How long an episode's steps took: measured, so never part of a reproducibility comparison."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    step_ms_mean: float = 0.0
+    step_ms_max: float = 0.0
+    inference_ms_mean: float = 0.0
+    budget_violations: int = 0
+
+
+class EpisodeResult(BaseModel):
+    """One simulated episode's outcome, derived from its ticks.
+
+    Everything but :attr:`timing` depends only on the scene, the skill and :attr:`seed`.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", ser_json_inf_nan="constants")
+
+    episode_idx: int = Field(ge=0)
+    seed: int
+    success: bool
+    steps: int = Field(ge=0)
+    steps_to_success: int | None = None
+    sum_reward: float = 0.0
+    max_reward: float = 0.0
+    ended_by: Literal["success", "terminated", "truncated", "max_steps", "skill_done"] = "max_steps"
+    timing: EpisodeTiming = Field(default_factory=EpisodeTiming)
+
+    def outcome(self) -> dict[str, Any]:
+        """Every field but the timing: what must be identical for identical seeds."""
+        return self.model_dump(exclude={"timing"})
+
+
+class BenchmarkRun(BaseModel):
+    """One row of a benchmark suite: a scene evaluated with one skill."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    scene: str = Field(min_length=1, description="Scene file, relative to the suite file.")
+    skill: str = Field(min_length=1, description="Skill id (entry-point group openral.skills).")
+    skill_params: dict[str, Any] = Field(default_factory=dict)
+    label: str | None = Field(default=None, description="Name in the report (scene/skill by default).")
+    n_episodes: int | None = Field(default=None, ge=1, description="Overrides the scene's episode count.")
+    seed: int | None = Field(default=None, ge=0, description="Overrides the scene's seed.")
+    min_success: float | None = Field(
+        default=None, ge=0, le=100, description="Lowest acceptable pc_success (percent) for this row."
+    )
+    render_cameras: bool = Field(
+        default=False,
+        description="Render the scene's cameras every step (a skill that sees pixels needs them; tens of ms a step).",
+    )
+
+
+class BenchmarkSuite(BaseModel):
+    """A benchmark suite file: scenes × skills, reported together with confidence intervals."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(min_length=1)
+    runs: list[BenchmarkRun] = Field(min_length=1)
+    videos: int = Field(default=2, ge=0, description="Episodes filmed per row (the first ones) with --videos DIR.")
+
+    @classmethod
+    def from_yaml(cls, path: Path) -> Self:
+        """Read and validate a suite file.
+
+        Raises:
+            ROSConfigError: Unreadable file or a bad field.
+        """
+        from openral_core.config import load_model_yaml  # noqa: PLC0415
+
+        return load_model_yaml(cls, path, field="--config")

@@ -1,0 +1,173 @@
+"""``SkillRunnerBase``: what every runner that closes a loop around a skill shares (hardware and sim).
+
+The skill phase and the safety phase of a tick, the supervisor boundary around them (a skill's
+exception, an invalid action, a safety violation, an e-stop: each withholds the action and is
+traced and counted), the recorder and the episode boundaries observers hear about.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import structlog
+from opentelemetry import context, trace
+from opentelemetry.trace import Status, StatusCode
+
+from openral_core import (
+    Action,
+    ROSEStopRequested,
+    ROSRuntimeError,
+    ROSSafetyViolation,
+    ROSStopRequested,
+    StopReason,
+    WithheldReason,
+    WorldState,
+)
+from openral_core.actions import action_problem
+from openral_observability import metrics, semconv
+from openral_rskill.base import RSkillBase
+from openral_runner.base import InferenceRunnerBase
+from openral_runner.observer import TickObserver
+from openral_runner.safety import NullSafetyClient, SafetyClient
+
+_log = structlog.get_logger(__name__)
+
+
+class SkillRunnerBase(InferenceRunnerBase):
+    """A runner that asks ``skill`` for an action each tick and checks it with ``safety_client``.
+
+    Args:
+        skill: An active skill.
+        safety_client: Checks every action; defaults to ``NullSafetyClient``.
+        task: Instruction placed in every world state.
+        recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
+            observer, hears every episode boundary and is closed with the runner.
+        **base_kwargs: ``InferenceRunnerBase`` options.
+    """
+
+    def __init__(
+        self,
+        *,
+        skill: RSkillBase,
+        safety_client: SafetyClient | None = None,
+        task: str | None = None,
+        recorder: TickObserver | None = None,
+        **base_kwargs: Any,
+    ) -> None:
+        base_kwargs.setdefault("skill_id", skill.info.skill_id)
+        super().__init__(**base_kwargs)
+        self.skill = skill
+        self.safety_client: SafetyClient = safety_client or NullSafetyClient()
+        self.task = task
+        self.recorder: TickObserver | None = None
+        if recorder is not None:
+            self.attach_recorder(recorder)
+
+    def attach_recorder(self, recorder: TickObserver) -> None:
+        """Make ``recorder`` the runner's recorder: its first observer, closed with the runner.
+
+        Raises:
+            ROSRuntimeError: The runner is active, or already has a recorder.
+        """
+        if self.is_active:
+            raise ROSRuntimeError("attach the recorder before activate()")
+        if self.recorder is not None:
+            raise ROSRuntimeError("the runner already has a recorder")
+        self.recorder = recorder
+        self.observers.insert(0, recorder)
+
+    # -- episode boundaries ----------------------------------------------------------------
+
+    def _tell_episode_start(self, episode_idx: int, task: str) -> None:
+        for observer in list(self.observers):
+            self._tell(observer, observer.on_episode_start, episode_idx, task)
+
+    def _tell_episode_end(self, episode_idx: int, *, success: bool, keep: bool = True) -> None:
+        for observer in list(self.observers):
+            self._tell(observer, observer.on_episode_end, episode_idx, success=success, keep=keep)
+
+    # -- the skill and safety phases -------------------------------------------------------
+
+    def _skill_phase(self, world: WorldState, tick_idx: int) -> tuple[Action | None, WithheldReason | None]:
+        """Ask the skill for an action; any failure withholds it (the skill is third-party code)."""
+        span = self._telemetry.start_span(semconv.SPAN_SKILL_INFERENCE)
+        token = context.attach(trace.set_span_in_context(span)) if self._spans_current else None
+        try:
+            output = self.skill.step(world)
+            problem = action_problem(output)
+            if problem is None:
+                return output, None
+            span.set_status(Status(StatusCode.ERROR, problem))
+            span.add_event(semconv.EVENT_INVALID_ACTION, {semconv.ATTR_EXCEPTION_MESSAGE: problem})
+            _log.warning("skill returned an invalid action; withheld", problem=problem, tick=tick_idx)
+            return None, WithheldReason.INVALID_ACTION
+        except ROSEStopRequested as exc:
+            return None, self._estop(exc)
+        except ROSStopRequested as exc:  # the skill's task is done: not a failure
+            span.add_event(semconv.EVENT_SKILL_DONE, {semconv.ATTR_EXCEPTION_MESSAGE: str(exc)})
+            self._on_skill_done(str(exc), tick_idx)
+            return None, WithheldReason.SKILL_DONE
+        except Exception as exc:
+            record_error(span, exc)
+            _log.warning("skill step failed", error=str(exc), tick=tick_idx)
+            return None, WithheldReason.SKILL_ERROR
+        finally:
+            if token is not None:
+                context.detach(token)
+            span.end()
+
+    def _on_skill_done(self, reason: str, tick_idx: int) -> None:
+        """The skill finished its task: on a robot the run ends."""
+        _log.info("the skill finished its task; stopping", reason=reason, tick=tick_idx)
+        self.request_stop(StopReason.SKILL_DONE)
+
+    def _safety_phase(self, action: Action, violations: list[str]) -> tuple[Action | None, WithheldReason | None]:
+        """Check ``action``; returns what may be sent (the action or its replacement) or why nothing may."""
+        span = self._telemetry.start_span(semconv.SPAN_SAFETY_CHECK)
+        token = context.attach(trace.set_span_in_context(span)) if self._spans_current else None
+        try:
+            replacement = self.safety_client.check_action(action)
+            to_send = action if replacement is None else replacement
+            if span.is_recording():
+                span.set_attributes(
+                    {
+                        semconv.ATTR_SAFETY_REQUESTED: action.first,
+                        semconv.ATTR_SAFETY_SENT: to_send.first,
+                        semconv.ATTR_SAFETY_REPLACED: replacement is not None,
+                    }
+                )
+            return to_send, None
+        except ROSSafetyViolation as exc:
+            violations.append(exc.check_name)
+            if span.is_recording():
+                span.set_attribute(semconv.ATTR_SAFETY_REQUESTED, action.first)
+            attrs = {semconv.ATTR_SAFETY_CHECK_NAME: exc.check_name, semconv.ATTR_SAFETY_SEVERITY: exc.severity}
+            span.record_exception(exc)
+            span.add_event(semconv.EVENT_SAFETY_VIOLATION, {**attrs, semconv.ATTR_EXCEPTION_MESSAGE: str(exc)})
+            metrics.add(semconv.METRIC_SAFETY_VIOLATIONS, 1, attrs)
+            _log.warning("action rejected by safety", check=exc.check_name, reason=str(exc))
+            return None, WithheldReason.SAFETY
+        except ROSEStopRequested as exc:
+            return None, self._estop(exc)
+        finally:
+            if token is not None:
+                context.detach(token)
+            span.end()
+
+    def _estop(self, exc: ROSEStopRequested) -> WithheldReason:
+        """E-stop the robot and stop the loop; returns the withheld reason."""
+        span = trace.get_current_span()
+        span.add_event(semconv.EVENT_ESTOP_REQUESTED, {semconv.ATTR_ESTOP_REASON: str(exc)})
+        _log.error("e-stop requested", reason=str(exc))
+        self._estop_robot()
+        self.request_stop(StopReason.ESTOP)
+        return WithheldReason.ESTOP
+
+    def _estop_robot(self) -> None:
+        """Bring the robot to a safe stop now (a simulation has nothing to stop)."""
+
+
+def record_error(span: Any, exc: BaseException) -> None:
+    """Mark ``span`` failed with ``exc``."""
+    span.record_exception(exc)
+    span.set_status(Status(StatusCode.ERROR, str(exc)))

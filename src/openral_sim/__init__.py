@@ -1,0 +1,1 @@
+"""Simulation: ``SimRunner`` (one env step per tick), scene files, environment adapters, expert skills, evaluation."""

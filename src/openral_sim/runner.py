@@ -1,0 +1,347 @@
+"""``SimRunner``: the runner's loop around a simulator, one ``env.step`` per tick.
+
+A tick is a *reset tick* between episodes (``env.reset`` with the episode's seed, then the skill's
+reset) or a *step tick*: the skill sees the last observation as a ``WorldState``, its action is
+checked by the safety client and sent to ``env.step``, exactly as on hardware (a withheld action
+steps the env with the hold action, as a robot keeps holding). Step ticks carry ``episode_idx``,
+``step_idx``, ``reward``, ``terminated`` and ``truncated``; the episodes' outcomes
+(:attr:`SimRunner.episode_results`) are derived from them, and ``run()`` ends once
+``n_episodes`` are done.
+
+Observers hear the episode boundaries as on hardware, so a ``RolloutRecorder`` records simulated
+episodes through the same path.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import structlog
+
+from openral_core import (
+    Action,
+    EpisodeResult,
+    EpisodeTiming,
+    FrameEncoding,
+    JointState,
+    PrivilegedState,
+    ROSConfigError,
+    SimEnvironment,
+    TickResult,
+    WithheldReason,
+    WorldState,
+)
+from openral_rskill.base import RSkillBase
+from openral_runner.frame_slot import frame_from_array
+from openral_runner.queued_observer import QueuedObserver
+from openral_runner.safety import SafetyClient
+from openral_runner.skill_runner import SkillRunnerBase
+from openral_runner.tick_context import TickContext
+from openral_sim.env import SimEnv, SimObservation
+from openral_sim.safety import ActionBoxSafetyClient
+
+_log = structlog.get_logger(__name__)
+
+
+class SimRunner(SkillRunnerBase):
+    """Evaluates ``skill`` on ``env`` for the scene's episodes.
+
+    Args:
+        env: The simulator (built from ``scene``; closed with the runner).
+        scene: Task, success key, step limit, episode count, seed and cameras.
+        skill: An active skill, built against ``env.spec.action_manifest``.
+        safety_client: By default the env's action box (:class:`ActionBoxSafetyClient`).
+        first_episode: Global index of this runner's first episode: episode ``i`` uses seed
+            ``scene.seed + i``, so a slice of episodes run anywhere reproduces the same outcomes.
+        n_episodes: Episodes to run (the scene's count by default).
+        **base_kwargs: ``InferenceRunnerBase`` options; free-running unless the scene sets ``rate_hz``.
+    """
+
+    def __init__(
+        self,
+        *,
+        env: SimEnv,
+        scene: SimEnvironment,
+        skill: RSkillBase,
+        safety_client: SafetyClient | None = None,
+        first_episode: int = 0,
+        n_episodes: int | None = None,
+        **base_kwargs: Any,
+    ) -> None:
+        base_kwargs.setdefault("runner_name", scene.name)
+        base_kwargs.setdefault("rate_hz", scene.rate_hz or env.spec.control_hz)
+        base_kwargs.setdefault("free_running", scene.rate_hz is None)
+        base_kwargs.setdefault("latency_budget_ms", scene.latency_budget_ms)
+        super().__init__(
+            skill=skill, safety_client=safety_client or ActionBoxSafetyClient(env.spec), task=scene.task, **base_kwargs
+        )
+        self.env = env
+        self.scene = scene
+        self.first_episode = first_episode
+        self.n_episodes = scene.n_episodes if n_episodes is None else n_episodes
+        self.episode_results: list[EpisodeResult] = []
+        self._spec = env.spec
+        self._action_names = list(env.spec.action_names)
+        self._observation: SimObservation | None = None
+        self._world: WorldState | None = None
+        self._episode: _EpisodeTally | None = None
+        self._frame_seq = 0
+        self._opened = False
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    def activate(self) -> None:
+        """Start the telemetry worker; the first tick resets the env into the first episode."""
+        super().activate()
+        self._opened = True
+
+    def deactivate(self) -> None:
+        """End an episode under way (as not successful, and kept), close the observers and the env."""
+        if self._episode is not None:
+            self._finish_episode("max_steps", success=False)
+        super().deactivate()
+        if self._opened:
+            self._opened = False
+            for observer in list(self.observers):
+                try:
+                    observer.close()
+                except Exception as exc:  # one failing close must not keep the others open
+                    _log.warning("observer close failed", observer=type(observer).__name__, error=str(exc))
+            self.env.close()
+
+    def _should_terminate(self) -> bool:
+        return len(self.episode_results) >= self.n_episodes
+
+    @property
+    def episodes_done(self) -> int:
+        return len(self.episode_results)
+
+    # -- the tick --------------------------------------------------------------------------
+
+    def _tick_impl(self, tick: TickContext) -> None:
+        if self._episode is None:
+            self._reset_tick(tick)
+            return
+        self._step_tick(tick, self._episode)
+
+    def _reset_tick(self, tick: TickContext) -> None:
+        """Reset the env into the next episode with its seed, and the skill with it."""
+        now = self._clock.now
+        t0 = now()
+        index = self.first_episode + len(self.episode_results)
+        seed = self.scene.seed + index
+        observation = self.env.reset(seed)
+        self.skill.reset(seed=seed)
+        t1 = now()
+        self._episode = _EpisodeTally(index, seed)
+        self._observation = observation
+        self._world = self._world_state(observation)
+        tick.world = self._world
+        tick.episode_idx = index
+        tick.hal_ms = (t1 - t0) * 1e3
+        self._tell_episode_start(index, self.scene.task)
+
+    def _step_tick(self, tick: TickContext, episode: _EpisodeTally) -> None:
+        now = self._clock.now
+        world = self._world
+        assert world is not None  # set by the reset tick
+        tick.world = world
+        tick.episode_idx = episode.index
+        tick.step_idx = episode.steps
+        t2 = now()
+        action, withheld = self._skill_phase(world, tick.tick_idx)
+        t3 = now()
+        to_send: Action | None = None
+        if action is not None:
+            to_send, withheld = self._safety_phase(action, tick.safety_violations)
+        t4 = now()
+        if to_send is not None and not self._deadline_allows_send():
+            to_send = None
+            withheld = WithheldReason.DEADLINE
+        if to_send is not None:
+            command = np.asarray(to_send.first, dtype=np.float64)
+            episode.last_sent = command
+        else:
+            command = self._spec.hold_action(episode.last_sent)
+        step = self.env.step(command)
+        t5 = now()
+        observation = step.observation
+        self._observation = observation
+        self._world = self._world_state(observation)
+        t6 = now()
+
+        tick.inference_ms = (t3 - t2) * 1e3
+        tick.safety_ms = (t4 - t3) * 1e3
+        tick.hal_ms = (t5 - t4) * 1e3
+        tick.sensors_ms = (t6 - t5) * 1e3
+        tick.action_applied = to_send is not None
+        tick.withheld = withheld
+        if action is not None:
+            tick.requested_action = action.first
+            if to_send is not None:
+                tick.sent_action = to_send.first
+        tick.reward = step.reward
+        tick.terminated = step.terminated
+        tick.truncated = step.truncated
+
+        episode.steps += 1
+        episode.sum_reward += step.reward
+        episode.max_reward = max(episode.max_reward, step.reward)
+        episode.inference_ms += tick.inference_ms
+        success = self._success(observation, episode)
+        if success and episode.steps_to_success is None:
+            episode.steps_to_success = episode.steps
+        ended_by = _ended_by(
+            success=success and self.scene.end_on_success,
+            terminated=step.terminated,
+            truncated=step.truncated,
+            max_steps=episode.steps >= self.scene.max_steps,
+            skill_done=episode.skill_done,
+        )
+        episode.pending_end = ended_by  # closed once the tick's result has reached the observers
+
+    def _run_tick(self, tick: TickContext, *, slot_start_s: float | None = None) -> TickResult:
+        """Run the tick; an episode it ended is closed after the observers have seen its last step."""
+        result = super()._run_tick(tick, slot_start_s=slot_start_s)
+        episode = self._episode
+        if episode is not None and result.step_idx is not None:
+            episode.step_ms_total += result.tick_ms
+            episode.step_ms_max = max(episode.step_ms_max, result.tick_ms)
+            if self.latency_budget_ms is not None and result.tick_ms > self.latency_budget_ms:
+                episode.budget_violations += 1
+            if episode.pending_end is not None:
+                self._require_success_key(episode)
+                self._finish_episode(episode.pending_end, success=episode.steps_to_success is not None)
+        if self.free_running:
+            # No tick has a deadline here: rather than outrun a recorder and lose frames, wait for it.
+            for observer in self.observers:
+                if isinstance(observer, QueuedObserver):
+                    observer.wait_for_room()
+        return result
+
+    def _on_skill_done(self, reason: str, tick_idx: int) -> None:
+        """In simulation a skill that is done ends its episode, not the evaluation."""
+        if self._episode is not None:
+            self._episode.skill_done = True
+
+    def _finish_episode(self, ended_by: str, *, success: bool) -> None:
+        episode = self._episode
+        assert episode is not None
+        self._episode = None
+        steps = max(episode.steps, 1)
+        result = EpisodeResult(
+            episode_idx=episode.index,
+            seed=episode.seed,
+            success=success,
+            steps=episode.steps,
+            steps_to_success=episode.steps_to_success,
+            sum_reward=episode.sum_reward,
+            max_reward=episode.max_reward if episode.steps else 0.0,
+            ended_by=ended_by,
+            timing=EpisodeTiming(
+                step_ms_mean=episode.step_ms_total / steps,
+                step_ms_max=episode.step_ms_max,
+                inference_ms_mean=episode.inference_ms / steps,
+                budget_violations=episode.budget_violations,
+            ),
+        )
+        self.episode_results.append(result)
+        self._tell_episode_end(episode.index, success=success)
+
+    def _success(self, observation: SimObservation, episode: _EpisodeTally) -> bool:
+        key = self.scene.success_key
+        if key not in observation.info:
+            episode.info_keys = sorted(observation.info)
+            return False
+        episode.saw_success_key = True
+        return bool(observation.info[key])
+
+    def _require_success_key(self, episode: _EpisodeTally) -> None:
+        """An episode that never reported the scene's success key would read as a failure: refuse it."""
+        if not episode.saw_success_key:
+            key = self.scene.success_key
+            raise ROSConfigError(
+                f"the environment never reported {key!r} in episode {episode.index}'s info "
+                f"(it reports {episode.info_keys})",
+                field="success_key",
+                hint="set success_key to the key the environment reports success under",
+            )
+
+    def _world_state(self, observation: SimObservation) -> WorldState:
+        stamp = self._clock.now_ns()
+        frames = None
+        if self.scene.cameras:
+            self._frame_seq += 1
+            frames = {
+                cam.name: frame_from_array(
+                    cam.name,
+                    self.env.render(cam.name, cam.width, cam.height),
+                    stamp_ns=stamp,
+                    seq=self._frame_seq,
+                    encoding=FrameEncoding.RGB8,
+                )
+                for cam in self.scene.cameras
+            }
+        return WorldState(
+            stamp_ns=stamp,
+            joint_state=JointState(
+                names=list(self._spec.state_names), positions=observation.state.tolist(), stamp_ns=stamp
+            ),
+            image_frames=frames,
+            privileged=PrivilegedState(values=observation.privileged),
+            task=self.scene.task,
+        )
+
+
+class _EpisodeTally:
+    """What the ticks of the episode under way have added up to."""
+
+    __slots__ = (
+        "budget_violations",
+        "index",
+        "inference_ms",
+        "info_keys",
+        "last_sent",
+        "max_reward",
+        "pending_end",
+        "saw_success_key",
+        "seed",
+        "skill_done",
+        "step_ms_max",
+        "step_ms_total",
+        "steps",
+        "steps_to_success",
+        "sum_reward",
+    )
+
+    def __init__(self, index: int, seed: int) -> None:
+        self.index = index
+        self.seed = seed
+        self.steps = 0
+        self.steps_to_success: int | None = None
+        self.sum_reward = 0.0
+        self.max_reward = -float("inf")
+        self.inference_ms = 0.0
+        self.step_ms_total = 0.0
+        self.step_ms_max = 0.0
+        self.budget_violations = 0
+        self.last_sent: np.ndarray | None = None
+        self.saw_success_key = False
+        self.info_keys: list[str] = []
+        self.skill_done = False
+        self.pending_end: str | None = None
+
+
+def _ended_by(*, success: bool, terminated: bool, truncated: bool, max_steps: bool, skill_done: bool) -> str | None:
+    if success:
+        return "success"
+    if terminated:
+        return "terminated"
+    if truncated:
+        return "truncated"
+    if skill_done:
+        return "skill_done"
+    if max_steps:
+        return "max_steps"
+    return None

@@ -1,0 +1,1 @@
+"""Skills for simulation: scripted experts (which read privileged state) and the ``zero``/``random`` baselines."""
