@@ -79,7 +79,8 @@ sys.meta_path.insert(0, Blocker())
 from openral_core import ROSDependencyMissing
 
 failed = {}
-for group in ("openral.skills", "openral.hals", "openral.sensor_backends", "openral.safety_clients", "openral.sim_envs"):
+GROUPS = ("openral.skills", "openral.hals", "openral.sensor_backends", "openral.safety_clients", "openral.sim_envs")
+for group in GROUPS:
     for ep in importlib.metadata.entry_points(group=group):
         try:
             ep.load()
