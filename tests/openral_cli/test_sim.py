@@ -1,0 +1,111 @@
+"""``openral sim run`` and ``openral benchmark run`` as a user runs them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from openral_cli.main import cli
+from openral_dataset.check import check_dataset
+
+ROOT = Path(__file__).resolve().parents[2]
+MOCK_SCENE = ROOT / "scenes" / "sim" / "mock_reach.yaml"
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_sim_run_json_puts_one_document_on_stdout_and_nothing_else() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "openral_cli", "sim", "run", "--config", str(MOCK_SCENE), "--skill", "random",
+         "--n-episodes", "4", "--seed", "5", "--json"],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)  # the whole of stdout is one JSON document
+    assert report["n_episodes"] == 4 and report["seed"] == 5
+    assert [e["seed"] for e in report["episodes"]] == [5, 6, 7, 8]
+    low, high = report["pc_success_ci95"]
+    assert 0.0 <= low <= report["pc_success"] <= high <= 100.0
+    assert {"avg_sum_reward", "avg_max_reward", "tick_ms", "inference_ms"} <= set(report)
+
+
+def test_sim_run_records_a_dataset_the_checker_accepts(tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    result = CliRunner().invoke(
+        cli,
+        ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "mock_reach_expert", "--n-episodes", "3",
+         "--dataset-out", str(out), "--vcodec", "h264", "--save-video", str(tmp_path / "videos"), "--videos", "2"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    report = check_dataset(out)
+    assert report.problems == []
+    assert report.episodes == 3
+    info = json.loads((out / "meta" / "info.json").read_text())
+    assert info["features"]["action"]["names"] == ["dx", "dy"]
+    assert info["features"]["observation.environment_state"]["names"] == ["target_x", "target_y"]
+    assert info["fps"] == 10
+    assert sorted(p.name for p in (tmp_path / "videos").iterdir()) == [
+        "mock_reach_episode0.mp4",
+        "mock_reach_episode1.mp4",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("text", "field"),
+    [
+        ("max_step: 10", "max_step"),
+        ("max_steps: 0", "max_steps"),
+        ("success_key: done", "success_key"),
+    ],
+)
+def test_a_wrong_scene_file_exits_2_with_one_line_naming_the_field(tmp_path: Path, text: str, field: str) -> None:
+    base = MOCK_SCENE.read_text().replace("max_steps: 60\n", "")
+    scene = _write(tmp_path / "scene.yaml", base + text + "\n")
+    result = CliRunner().invoke(cli, ["sim", "run", "--config", str(scene), "--skill", "zero"])
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and field in lines[0], result.output
+
+
+def test_bad_skill_params_exit_2_naming_the_option() -> None:
+    result = CliRunner().invoke(
+        cli, ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "zero", "--skill-params", "{nope"]
+    )
+    assert result.exit_code == 2
+    assert "--skill-params" in result.output
+
+
+@pytest.mark.slow
+def test_benchmark_run_reports_every_row_with_provenance_and_fails_below_min_success(tmp_path: Path) -> None:
+    suite = _write(
+        tmp_path / "suite.yaml",
+        f"name: tiny\n"
+        f"runs:\n"
+        f"  - {{scene: {MOCK_SCENE}, skill: mock_reach_expert, n_episodes: 4}}\n"
+        f"  - {{scene: {MOCK_SCENE}, skill: zero, n_episodes: 4, label: baseline}}\n",
+    )
+    out = tmp_path / "bench.json"
+    result = CliRunner().invoke(
+        cli, ["benchmark", "run", "--config", str(suite), "--workers", "2", "--min-success", "50", "--out", str(out)]
+    )
+    assert result.exit_code == 1  # the zero baseline is below 50 %
+    assert "baseline" in result.output
+    document = json.loads(out.read_text())
+    rows = {row["label"]: row for row in document["results"]}
+    assert rows["mock_reach/mock_reach_expert"]["pc_success"] == 100.0
+    assert rows["baseline"]["pc_success"] == 0.0
+    assert [e["episode_idx"] for e in rows["baseline"]["episodes"]] == [0, 1, 2, 3]
+    provenance = document["provenance"]
+    assert provenance["packages"]["mujoco"] is not None
+    assert len(provenance["config_sha256"]) == 64
+    assert provenance["workers"] == 2
+    passing = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--min-success", "0"])
+    assert passing.exit_code == 0, passing.output

@@ -1,0 +1,59 @@
+"""Evaluation units: the Wilson interval, splitting, and identical outcomes in one process, two workers and Ray."""
+
+from __future__ import annotations
+
+import pytest
+
+from openral_core import SimEnvironment
+from openral_sim.evaluation import run_units, split_episodes, summarize, wilson_interval
+
+SCENE = SimEnvironment(
+    name="reach", env="mock", task="reach", success_key="is_success", max_steps=25, n_episodes=8, seed=3
+)
+
+
+def test_wilson_interval_matches_the_formula_and_stays_inside_zero_one() -> None:
+    assert wilson_interval(0, 50) == pytest.approx((0.0, 0.071348), abs=1e-6)
+    assert wilson_interval(50, 50) == pytest.approx((0.928652, 1.0), abs=1e-6)
+    assert wilson_interval(40, 50) == pytest.approx((0.669629, 0.887562), abs=1e-6)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    low, high = wilson_interval(7, 20)
+    assert low < 7 / 20 < high
+
+
+def test_split_covers_every_episode_once_in_order() -> None:
+    units = split_episodes(SCENE, "zero", {}, 8, 3)
+    covered = [i for u in units for i in range(u.first_episode, u.first_episode + u.n_episodes)]
+    assert covered == list(range(8))
+    assert len(split_episodes(SCENE, "zero", {}, 2, 5)) == 2
+
+
+def test_summary_uses_lerobots_names_and_the_interval() -> None:
+    batch = run_units(split_episodes(SCENE, "random", {}, 8, 1))
+    summary = summarize(batch.episodes, batch)
+    n_success = sum(e.success for e in batch.episodes)
+    assert summary["n_success"] == n_success
+    assert summary["pc_success"] == pytest.approx(100 * n_success / 8)
+    low, high = wilson_interval(n_success, 8)
+    assert summary["pc_success_ci95"] == pytest.approx([100 * low, 100 * high])
+    assert summary["avg_max_reward"] == pytest.approx(sum(e.max_reward for e in batch.episodes) / 8)
+    assert summary["tick_ms"]["p50"] <= summary["tick_ms"]["p99"]
+
+
+@pytest.mark.slow
+def test_two_worker_processes_give_the_outcomes_of_one_process() -> None:
+    here = run_units(split_episodes(SCENE, "random", {}, 8, 1)).episodes
+    workers = run_units(split_episodes(SCENE, "random", {}, 8, 4), workers=2).episodes
+    assert [e.outcome() for e in workers] == [e.outcome() for e in here]
+
+
+@pytest.mark.slow
+def test_ray_gives_the_outcomes_of_one_process() -> None:
+    ray = pytest.importorskip("ray", reason="needs the 'ray' extra")
+    here = run_units(split_episodes(SCENE, "random", {}, 8, 1)).episodes
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        on_ray = run_units(split_episodes(SCENE, "random", {}, 8, 4), ray_address="local").episodes
+    finally:
+        ray.shutdown()
+    assert [e.outcome() for e in on_ray] == [e.outcome() for e in here]

