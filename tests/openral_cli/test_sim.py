@@ -30,7 +30,8 @@ def test_sim_run_json_puts_one_document_on_stdout_and_nothing_else() -> None:
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout)  # the whole of stdout is one JSON document
-    assert report["n_episodes"] == 4 and report["seed"] == 5
+    assert report["n_episodes"] == 4
+    assert report["seed"] == 5
     assert [e["seed"] for e in report["episodes"]] == [5, 6, 7, 8]
     low, high = report["pc_success_ci95"]
     assert 0.0 <= low <= report["pc_success"] <= high <= 100.0
@@ -72,7 +73,8 @@ def test_a_wrong_scene_file_exits_2_with_one_line_naming_the_field(tmp_path: Pat
     result = CliRunner().invoke(cli, ["sim", "run", "--config", str(scene), "--skill", "zero"])
     assert result.exit_code == 2
     lines = [line for line in result.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and field in lines[0], result.output
+    assert len(lines) == 1, result.output
+    assert field in lines[0]
 
 
 def test_bad_skill_params_exit_2_naming_the_option() -> None:

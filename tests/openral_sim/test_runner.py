@@ -83,7 +83,8 @@ def test_one_env_step_per_tick_and_episodes_derived_from_the_ticks() -> None:
     # Each episode: one reset tick (no step index, no action), then one tick per env step.
     for episode in runner.episode_results:
         ticks = [t for t in log.ticks if t.episode_idx == episode.episode_idx]
-        assert ticks[0].step_idx is None and not ticks[0].action_applied
+        assert ticks[0].step_idx is None
+        assert not ticks[0].action_applied
         steps = ticks[1:]
         assert [t.step_idx for t in steps] == list(range(episode.steps))
         assert all(t.reward is not None and t.action_applied for t in steps)
@@ -101,7 +102,8 @@ def test_one_env_step_per_tick_and_episodes_derived_from_the_ticks() -> None:
     ]
     # The skill saw the observation of the step before (its world state carries privileged values).
     world = log.worlds[1]
-    assert world is not None and world.privileged is not None
+    assert world is not None
+    assert world.privileged is not None
     assert world.joint_state is not None
     assert world.joint_state.positions == world.privileged.get("position")
 
@@ -136,8 +138,10 @@ def test_actions_outside_the_action_space_are_clamped_and_non_finite_ones_withhe
     log = TickLog()
     result = _run(runner, log)
     steps = [t for t in log.ticks if t.step_idx is not None]
-    assert steps[0].requested_action == [5.0, -3.0] and steps[0].sent_action == [1.0, -1.0]
-    assert steps[1].withheld_reason == WithheldReason.SAFETY and not steps[1].action_applied
+    assert steps[0].requested_action == [5.0, -3.0]
+    assert steps[0].sent_action == [1.0, -1.0]
+    assert steps[1].withheld_reason == WithheldReason.SAFETY
+    assert not steps[1].action_applied
     assert steps[1].safety_violations == ["finite"]
     assert steps[2].sent_action == [0.5, 0.5]
     assert result.safety_violations == 1
@@ -189,9 +193,11 @@ def test_paced_runs_keep_the_scene_rate_and_free_runs_do_not_wait() -> None:
     _run(paced)
     assert time.perf_counter() - started >= 10 / 100.0  # 11 ticks on a 10 ms schedule: a lower bound
     free = build_sim_runner(_scene(n_episodes=1, max_steps=10), "zero")
-    assert free.free_running and not paced.free_running
+    assert free.free_running
+    assert not paced.free_running
     result = _run(free)
-    assert result.missed_slots == 0 and result.deadline_misses == 0
+    assert result.missed_slots == 0
+    assert result.deadline_misses == 0
 
 
 def test_an_unknown_environment_or_skill_names_the_field_and_the_choices() -> None:

@@ -1,4 +1,4 @@
-"""The SO-101 tasks of lerobot-env-so101 with their scripted experts: success, and the same episode for the same seed."""
+"""The SO-101 tasks of lerobot-env-so101 with their scripted experts: success, and one episode per seed."""
 
 from __future__ import annotations
 
