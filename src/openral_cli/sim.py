@@ -243,13 +243,11 @@ def benchmark_run(
         failed = []
         with _stdout_to_stderr(as_json):
             for run, scene in rows:
-                units = evaluation.split_episodes(
-                    scene,
-                    run.skill,
-                    run.skill_params,
-                    scene.n_episodes,
-                    1 if workers == 1 and not ray_address else 4 * workers,
-                )
+                # A few units per worker: balanced load, and each pays the env's start-up once.
+                parts = 1 if workers == 1 and ray_address is None else 2 * workers
+                units = evaluation.split_episodes(scene, run.skill, run.skill_params, scene.n_episodes, parts)
+                if video_dir is not None:
+                    units = evaluation.with_videos(units, video_dir, suite.videos)
                 batch = evaluation.run_units(units, workers=workers, ray_address=ray_address)
                 label = run.label or f"{scene.name}/{run.skill}"
                 row = {
