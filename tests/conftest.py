@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable, Iterator
 
@@ -17,6 +18,12 @@ from opentelemetry.sdk.metrics.export import InMemoryMetricReader
 from opentelemetry.sdk.trace import TracerProvider
 from opentelemetry.sdk.trace.export import SimpleSpanProcessor
 from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
+
+# GEOS (shapely's library, under gym-pusht) crashes in ``intersection`` once libraries that other
+# tests load into this one process (codecs, GStreamer plugins) have bound the same global symbols
+# first: loaded before anything else, it binds its own.
+with contextlib.suppress(ImportError):
+    import shapely.geometry  # noqa: F401
 
 ALLOWED_CI_SKIP = ("rclpy", "ROS 2")
 """ROS 2 has no installable distribution here; every other optional system package is installed by .ci/run."""

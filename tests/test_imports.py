@@ -97,6 +97,7 @@ NEEDS_A_HEAVY_LIBRARY = {
     "openral.sensor_backends:opencv_thread": ("cv2", "opencv"),
     "openral.sensor_backends:gstreamer": ("gi", "gstreamer"),
     "openral.skills:metaworld_expert": ("mujoco", "sim"),
+    "openral.skills:onnx_policy": ("onnxruntime", "policy"),
     "openral.sim_envs:so101": ("mujoco", "twin"),
     "openral.sim_envs:metaworld": ("mujoco", "twin"),
     "openral.sim_envs:pusht": ("cv2", "opencv"),

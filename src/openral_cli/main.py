@@ -37,7 +37,7 @@ from openral_core import (
     RunResult,
     StopReason,
 )
-from openral_core.schema import robot_environment_schema_json
+from openral_core.schema import FILE_MODELS, schema_json
 from openral_hal.manifests import load_robot_manifest
 from openral_observability import semconv
 from openral_observability.logs import OTelLogBridge, add_trace_ids
@@ -304,9 +304,16 @@ def validate(ctx: click.Context, config_path: Path) -> None:
 
 @cli.command()
 @click.option("--output", "-o", type=click.Path(path_type=Path, dir_okay=False), default=None)
-def schema(output: Path | None) -> None:
-    """Write the JSON Schema of the deployment file (stdout by default)."""
-    text = robot_environment_schema_json()
+@click.option(
+    "--kind",
+    type=click.Choice(sorted(FILE_MODELS)),
+    default="deployment",
+    show_default=True,
+    help="Which file: a deployment, a simulation scene or a benchmark suite.",
+)
+def schema(output: Path | None, kind: str) -> None:
+    """Write the JSON Schema of a configuration file (stdout by default)."""
+    text = schema_json(kind)
     if output is None:
         click.echo(text, nl=False)
     else:

@@ -91,6 +91,9 @@ def sim() -> None:
 @click.option("--videos", type=click.IntRange(min=1), default=3, show_default=True, help="Episodes filmed.")
 @click.option("--dataset-out", type=click.Path(path_type=Path, file_okay=False), default=None)
 @click.option("--resume", is_flag=True, help="Add the episodes to the dataset already in --dataset-out.")
+@click.option(
+    "--no-cameras", is_flag=True, help="Render none of the scene's cameras (state-only skills: tens of ms a step less)."
+)
 @VCODEC_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout, nothing else.")
 @click.option("--otlp-endpoint", default=None, help="Export telemetry to this OTLP endpoint.")
@@ -107,6 +110,7 @@ def sim_run(
     videos: int,
     dataset_out: Path | None,
     resume: bool,
+    no_cameras: bool,
     vcodec: str,
     as_json: bool,
     otlp_endpoint: str | None,
@@ -117,6 +121,8 @@ def sim_run(
     code = EXIT_OK
     with StopSignals() as signals, exit_codes(bool(ctx.obj["debug"])):
         scene = _scene(SimEnvironment.from_yaml(config_path), n_episodes, seed)
+        if no_cameras:
+            scene = scene.model_copy(update={"cameras": []})
         params = _params(skill_params, "--skill-params")
         observers = []
         written: list[Any] = []

@@ -31,6 +31,7 @@ from openral_core.errors import (
     ROSStopRequested,
     ROSSyncError,
 )
+from openral_core.execution import ExecutorConfig, FallbackSkill, SeamMode, StarvationFallback, VirtualLatency
 from openral_core.frames import FrameEncoding, SensorFrame
 from openral_core.results import RunResult, StopReason, TickResult, WithheldReason
 from openral_core.robot import JointKind, JointSpec, ModelRef, RobotManifest
@@ -55,6 +56,8 @@ __all__ = [
     "DeadlineOverrunPolicy",
     "EpisodeResult",
     "EpisodeTiming",
+    "ExecutorConfig",
+    "FallbackSkill",
     "FaultPolicy",
     "FrameEncoding",
     "GarbageCollection",
@@ -88,16 +91,19 @@ __all__ = [
     "SafetyConfig",
     "SafetyEnvelope",
     "SafetyMode",
+    "SeamMode",
     "SensorFrame",
     "SensorReaderBackend",
     "SensorReaderConfig",
     "SimCamera",
     "SimEnvironment",
+    "StarvationFallback",
     "StopReason",
     "SyncConfig",
     "TaskSpec",
     "TickResult",
     "VLASpec",
+    "VirtualLatency",
     "WithheldReason",
     "WorldState",
 ]

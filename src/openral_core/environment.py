@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from openral_core.actions import SafetyMode, check_workspace_box
 from openral_core.config import load_model_yaml
+from openral_core.execution import ExecutorConfig
 from openral_core.frames import FrameEncoding
 
 _ID_PATTERN = r"^[A-Za-z][A-Za-z0-9_\-]*$"
@@ -247,6 +248,8 @@ class RobotEnvironment(_Block):
     latency_budget_ms: float | None = Field(default=None, gt=0)
     thumbnail_hz: float = Field(default=0.0, ge=0, le=MAX_CAMERA_FPS)
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
+    executor: ExecutorConfig = Field(default_factory=ExecutorConfig)
+    """How a chunking skill's chunks are executed (skills with chunk size 1 do not use it)."""
     realtime: RealtimeConfig = Field(default_factory=RealtimeConfig)
     faults: FaultPolicy = Field(default_factory=FaultPolicy)
     observers: list[ObserverConfig] = Field(default_factory=list)

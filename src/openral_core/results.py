@@ -24,6 +24,10 @@ class WithheldReason(StrEnum):
     ESTOP = "estop"
     SKILL_DONE = "skill_done"
     """The skill finished its task (raised ``ROSStopRequested``): nothing to send, the run ends."""
+    AWAITING_CHUNK = "awaiting_chunk"
+    """A chunking policy's first chunk has not arrived yet: nothing to send, nothing to hold."""
+    STARVED = "starved"
+    """No chunk row came for too many ticks and the fallback is to stop (or there is no fallback skill)."""
 
     @property
     def is_fault(self) -> bool:
@@ -55,6 +59,7 @@ _FAULTS = frozenset(
         WithheldReason.SKILL_ERROR,
         WithheldReason.INVALID_ACTION,
         WithheldReason.HAL_ERROR,
+        WithheldReason.STARVED,
     }
 )
 

@@ -7,6 +7,8 @@ from typing import Any, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from openral_core.execution import ExecutorConfig, VirtualLatency
+
 SuccessKey = Literal["is_success", "succeed", "success"]
 """The ``info`` keys simulators report success under (gym-pusht/LIBERO, lerobot-env-so101, MetaWorld)."""
 
@@ -46,6 +48,11 @@ class SimEnvironment(BaseModel):
         default=None, gt=0, description="Pace ticks at this rate; by default free-running (as fast as the env steps)."
     )
     latency_budget_ms: float | None = Field(default=None, gt=0, description="Steps longer than this are counted.")
+    executor: ExecutorConfig = Field(default_factory=ExecutorConfig, description="How chunking skills are executed.")
+    virtual_latency: VirtualLatency = Field(
+        default_factory=VirtualLatency,
+        description="Ticks from a chunk request to its use: inference is simulated, so results reproduce.",
+    )
 
     @field_validator("cameras")
     @classmethod

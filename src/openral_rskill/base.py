@@ -47,6 +47,7 @@ from openral_core.robot import RobotManifest
 from openral_core.skills import RSkillInfo, RSkillState
 from openral_core.world import WorldState
 from openral_observability import semconv
+from openral_rskill.anchoring import AbsoluteAnchor, Anchor
 
 ParamsT = TypeVar("ParamsT", bound=BaseModel)
 
@@ -111,6 +112,10 @@ class RSkillBase(ABC):
 
     def _on_shutdown(self) -> None:  # noqa: B027 (optional hook)
         """Release everything ``configure`` acquired."""
+
+    def action_anchor(self) -> Anchor:
+        """How a chunking skill's rows become targets (see :mod:`openral_rskill.anchoring`); absolute by default."""
+        return AbsoluteAnchor()
 
     def _on_reset(self) -> None:  # noqa: B027 (optional hook)
         """Start a new episode: clear per-episode state (latched poses, chunk queues, step counters)."""

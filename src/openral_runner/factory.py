@@ -117,11 +117,24 @@ def build_runner(
         garbage_collection=env.realtime.garbage_collection,
         sync=env.sync,
         thumbnail_hz=env.thumbnail_hz,
+        executor=env.executor,
+        action_names=robot.joint_names,
+        fallback_skill=_fallback_skill(env, robot),
     )
     for index, spec in enumerate(env.observers):
         observer_cls = OBSERVER_REGISTRY.resolve(spec.id, field=f"observers[{index}].id")
         runner.observers.append(observer_cls.from_config(spec.params, robot=robot, env=env, base_dir=base_dir))
     return runner, skill
+
+
+def _fallback_skill(env: RobotEnvironment, robot: RobotManifest) -> RSkillBase | None:
+    spec = env.executor.fallback_skill
+    if spec is None:
+        return None
+    skill: RSkillBase = SKILL_REGISTRY.resolve(spec.id, field="executor.fallback_skill.id").from_config(
+        spec.params, robot=robot, rate_hz=env.rate_hz
+    )
+    return skill
 
 
 def _build_reader(

@@ -208,7 +208,7 @@ class HardwareRunner(SkillRunnerBase):
         self._episode_open = True
         self._episode_start_tick = self._tick_idx
         self.task = task_string or None
-        self.skill.reset()
+        self._reset_skill()
         self.metadata.setdefault("episodes", []).append(
             {"episode_idx": self._episode_idx, "task": task_string, "start_tick": self._tick_idx}
         )

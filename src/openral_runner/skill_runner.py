@@ -7,18 +7,24 @@ traced and counted), the recorder and the episode boundaries observers hear abou
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import structlog
 from opentelemetry import context, trace
 from opentelemetry.trace import Status, StatusCode
 
 from openral_core import (
     Action,
+    ExecutorConfig,
+    ROSConfigError,
     ROSEStopRequested,
     ROSRuntimeError,
     ROSSafetyViolation,
     ROSStopRequested,
+    RSkillState,
+    RunResult,
     StopReason,
     WithheldReason,
     WorldState,
@@ -26,6 +32,7 @@ from openral_core import (
 from openral_core.actions import action_problem
 from openral_observability import metrics, semconv
 from openral_rskill.base import RSkillBase
+from openral_rskill.executor import ChunkedExecutor, Fallback, Outcome, Seam
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.observer import TickObserver
 from openral_runner.safety import NullSafetyClient, SafetyClient
@@ -42,6 +49,12 @@ class SkillRunnerBase(InferenceRunnerBase):
         task: Instruction placed in every world state.
         recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
             observer, hears every episode boundary and is closed with the runner.
+        executor: How a chunking skill (chunk size above 1) is executed; it then runs on the
+            executor's worker and the tick takes its rows (:mod:`openral_rskill.executor`).
+        action_names: The action's dimensions (the robot's joints, an env's action names): what
+            a chunk's rows must match.
+        fallback_skill: Acts while the chunking skill is starved (``executor.fallback: skill``).
+        virtual_delay: Simulation only: ticks from a chunk request to its use, per request.
         **base_kwargs: ``InferenceRunnerBase`` options.
     """
 
@@ -52,6 +65,10 @@ class SkillRunnerBase(InferenceRunnerBase):
         safety_client: SafetyClient | None = None,
         task: str | None = None,
         recorder: TickObserver | None = None,
+        executor: ExecutorConfig | None = None,
+        action_names: list[str] | None = None,
+        fallback_skill: RSkillBase | None = None,
+        virtual_delay: Callable[[int], int] | None = None,
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("skill_id", skill.info.skill_id)
@@ -62,6 +79,12 @@ class SkillRunnerBase(InferenceRunnerBase):
         self.recorder: TickObserver | None = None
         if recorder is not None:
             self.attach_recorder(recorder)
+        self.fallback_skill = fallback_skill
+        self.executor: ChunkedExecutor | None = None
+        if skill.info.chunk_size > 1:
+            if action_names is None:
+                raise ROSConfigError("a chunking skill needs the action's names", field="vla.id")
+            self.executor = _executor_for(skill, executor or ExecutorConfig(), action_names, virtual_delay)
 
     def attach_recorder(self, recorder: TickObserver) -> None:
         """Make ``recorder`` the runner's recorder: its first observer, closed with the runner.
@@ -76,6 +99,22 @@ class SkillRunnerBase(InferenceRunnerBase):
         self.recorder = recorder
         self.observers.insert(0, recorder)
 
+    def activate(self) -> None:
+        """Start the fallback skill (a chunking skill's, if any), then the base."""
+        fallback = self.fallback_skill
+        if fallback is not None and fallback.state is RSkillState.UNCONFIGURED:
+            fallback.configure()
+            fallback.activate()
+        super().activate()
+
+    def deactivate(self) -> None:
+        """Stop the base, the chunk executor's worker and the fallback skill. Idempotent."""
+        super().deactivate()
+        self.close_executor()
+        fallback = self.fallback_skill
+        if fallback is not None and fallback.state is not RSkillState.UNCONFIGURED:
+            fallback.shutdown()
+
     # -- episode boundaries ----------------------------------------------------------------
 
     def _tell_episode_start(self, episode_idx: int, task: str) -> None:
@@ -88,12 +127,71 @@ class SkillRunnerBase(InferenceRunnerBase):
 
     # -- the skill and safety phases -------------------------------------------------------
 
+    def _reset_skill(self, seed: int | None = None) -> None:
+        """Start the skill's next episode: on the executor's worker for a chunking skill (never during inference)."""
+        if self.executor is not None:
+            skill = self.skill
+            self.executor.reset(lambda: skill.reset(seed=seed))
+        else:
+            self.skill.reset(seed=seed)
+
+    def close_executor(self) -> None:
+        """Stop the chunk executor's worker (a hung inference is abandoned). Idempotent."""
+        if self.executor is not None:
+            self.executor.close()
+
+    def _build_run_result(self, n_ticks: int, stop_reason: StopReason) -> RunResult:
+        if self.executor is not None:
+            stats = self.executor.stats
+            self.metadata["executor"] = {
+                "requests": stats.requests,
+                "chunks_used": stats.chunks_used,
+                "chunks_discarded": stats.chunks_discarded,
+                "results_late": stats.results_late,
+                "results_stale_epoch": stats.results_stale_epoch,
+                "rows_skipped": stats.rows_skipped,
+                "starved_ticks": stats.starved_ticks,
+                "errors": stats.errors,
+            }
+        return super()._build_run_result(n_ticks, stop_reason)
+
     def _skill_phase(self, world: WorldState, tick_idx: int) -> tuple[Action | None, WithheldReason | None]:
-        """Ask the skill for an action; any failure withholds it (the skill is third-party code)."""
+        """Ask the skill (or its executor) for an action; any failure withholds it (the skill is third-party code)."""
+        if self.executor is not None:
+            return self._chunk_phase(self.executor, world, tick_idx)
+        return self._step_phase(self.skill, world, tick_idx)
+
+    def _chunk_phase(
+        self, executor: ChunkedExecutor, world: WorldState, tick_idx: int
+    ) -> tuple[Action | None, WithheldReason | None]:
+        """This tick's row of the chunk executor (never waiting on inference), or why there is none."""
+        span = self._telemetry.start_span(semconv.SPAN_SKILL_INFERENCE)
+        try:
+            decision = executor.step(tick_idx, world, self._telemetry)
+        except Exception as exc:  # anchoring reads the world state the skill's parameters name
+            record_error(span, exc)
+            _log.warning("chunk execution failed", error=str(exc), tick=tick_idx)
+            return None, WithheldReason.SKILL_ERROR
+        finally:
+            span.end()
+        outcome = decision.outcome
+        if outcome is Outcome.ACTION or outcome is Outcome.HOLD:
+            return decision.action, None
+        if outcome is Outcome.NONE:
+            return None, WithheldReason.AWAITING_CHUNK
+        if outcome is Outcome.FALLBACK and self.fallback_skill is not None:
+            return self._step_phase(self.fallback_skill, world, tick_idx)
+        _log.error("the chunking policy is starved; stopping", tick=tick_idx)
+        self.request_stop(StopReason.FAULTS)
+        return None, WithheldReason.STARVED
+
+    def _step_phase(
+        self, skill: RSkillBase, world: WorldState, tick_idx: int
+    ) -> tuple[Action | None, WithheldReason | None]:
         span = self._telemetry.start_span(semconv.SPAN_SKILL_INFERENCE)
         token = context.attach(trace.set_span_in_context(span)) if self._spans_current else None
         try:
-            output = self.skill.step(world)
+            output = skill.step(world)
             problem = action_problem(output)
             if problem is None:
                 return output, None
@@ -165,6 +263,36 @@ class SkillRunnerBase(InferenceRunnerBase):
 
     def _estop_robot(self) -> None:
         """Bring the robot to a safe stop now (a simulation has nothing to stop)."""
+
+
+def _executor_for(
+    skill: RSkillBase, config: ExecutorConfig, action_names: list[str], virtual_delay: Callable[[int], int] | None
+) -> ChunkedExecutor:
+    """The executor of a chunking skill: its ``step`` (a chunk) runs on the worker, or inline under virtual latency."""
+
+    def infer(world: WorldState) -> np.ndarray:
+        return np.asarray(skill.step(world).targets, dtype=np.float64)
+
+    return ChunkedExecutor(
+        infer,
+        reset=skill.reset,
+        action_names=action_names,
+        chunk_size=skill.info.chunk_size,
+        anchor=skill.action_anchor(),
+        seam=Seam(config.seam.value),
+        crossfade_rows=config.crossfade_rows,
+        ensemble_decay=config.ensemble_decay,
+        margin_ticks=config.margin_ticks,
+        min_rows=config.min_rows,
+        deadline_ticks=config.deadline_ticks,
+        max_starved_ticks=config.max_starved_ticks,
+        fallback=Fallback(config.fallback.value),
+        executed_rows=config.executed_rows,
+        stale_start=config.indexing == "stale_start",
+        virtual_delay=virtual_delay,
+        skill_id=skill.info.skill_id,
+        control_mode=skill.info.control_mode,
+    )
 
 
 def record_error(span: Any, exc: BaseException) -> None:

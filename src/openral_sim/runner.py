@@ -74,7 +74,13 @@ class SimRunner(SkillRunnerBase):
         base_kwargs.setdefault("free_running", scene.rate_hz is None)
         base_kwargs.setdefault("latency_budget_ms", scene.latency_budget_ms)
         super().__init__(
-            skill=skill, safety_client=safety_client or ActionBoxSafetyClient(env.spec), task=scene.task, **base_kwargs
+            skill=skill,
+            safety_client=safety_client or ActionBoxSafetyClient(env.spec),
+            task=scene.task,
+            executor=scene.executor,
+            action_names=list(env.spec.action_names),
+            virtual_delay=scene.virtual_latency.sampler(scene.seed),
+            **base_kwargs,
         )
         self.env = env
         self.scene = scene
@@ -132,7 +138,9 @@ class SimRunner(SkillRunnerBase):
         index = self.first_episode + len(self.episode_results)
         seed = self.scene.seed + index
         observation = self.env.reset(seed)
-        self.skill.reset(seed=seed)
+        if self.executor is not None:
+            self.executor.virtual_delay = self.scene.virtual_latency.sampler(seed)
+        self._reset_skill(seed)
         t1 = now()
         self._episode = _EpisodeTally(index, seed)
         self._observation = observation

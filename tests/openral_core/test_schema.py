@@ -134,3 +134,23 @@ def test_schema_rejects_what_the_model_rejects(
 def test_required_blocks_are_required(validator: jsonschema.protocols.Validator) -> None:
     assert set(robot_environment_schema()["required"]) == {"hal", "vla"}
     assert _errors(validator, {"vla": {"id": "v"}}) == [": 'hal' is a required property"]
+
+
+SCENES = Path(__file__).parents[2] / "scenes" / "sim"
+
+
+def test_every_shipped_scene_passes_the_scene_schema_and_the_model() -> None:
+    from openral_core import SimEnvironment  # noqa: PLC0415
+    from openral_core.schema import sim_environment_schema  # noqa: PLC0415
+
+    schema = sim_environment_schema()
+    jsonschema.Draft202012Validator.check_schema(schema)
+    scene_validator = jsonschema.Draft202012Validator(schema)
+    scenes = sorted(SCENES.glob("*.yaml"))
+    assert len(scenes) >= 4
+    for path in scenes:
+        document = yaml.safe_load(path.read_text(encoding="utf-8"))
+        assert _errors(scene_validator, document) == [], path.name
+        SimEnvironment.from_yaml(path)
+    wrong = {**yaml.safe_load(scenes[0].read_text(encoding="utf-8")), "success_key": "done"}
+    assert any(error.startswith("success_key") for error in _errors(scene_validator, wrong))

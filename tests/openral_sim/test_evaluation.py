@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
+import json
+import subprocess
+import sys
+
 import pytest
 
 from openral_core import SimEnvironment
@@ -47,13 +52,28 @@ def test_two_worker_processes_give_the_outcomes_of_one_process() -> None:
     assert [e.outcome() for e in workers] == [e.outcome() for e in here]
 
 
+RAY_RUN = """
+import json, ray
+from openral_core import SimEnvironment
+from openral_sim.evaluation import run_units, split_episodes
+scene = SimEnvironment.model_validate_json({scene!r})
+ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+try:
+    batch = run_units(split_episodes(scene, "random", {{}}, 8, 4), ray_address="local")
+finally:
+    ray.shutdown()
+print(json.dumps([e.outcome() for e in batch.episodes]))
+"""
+
+
 @pytest.mark.slow
 def test_ray_gives_the_outcomes_of_one_process() -> None:
-    ray = pytest.importorskip("ray", reason="needs the 'ray' extra")
+    if importlib.util.find_spec("ray") is None:  # not imported here: Ray installs process-wide handlers
+        pytest.skip("needs the 'ray' extra")
     here = run_units(split_episodes(SCENE, "random", {}, 8, 1)).episodes
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        on_ray = run_units(split_episodes(SCENE, "random", {}, 8, 4), ray_address="local").episodes
-    finally:
-        ray.shutdown()
-    assert [e.outcome() for e in on_ray] == [e.outcome() for e in here]
+    # Ray starts its own processes and signal handlers: it runs in a child, not in the test process.
+    code = RAY_RUN.format(scene=SCENE.model_dump_json())
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    on_ray = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert on_ray == [e.outcome() for e in here]

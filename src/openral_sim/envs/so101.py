@@ -4,6 +4,7 @@ The action is ``[dx, dy, dz, grasp]``: a move of the grasp point in ``action_sca
 unit (a delta; holding is zero motion with the jaw command kept) and an absolute jaw command in
 ``[0, 1]``. The state is the env's ``agent_pos`` (arm joint positions and velocities, jaw, end
 effector position). Privileged values: ``block_pos``, ``grasp_pos`` (the point the action moves),
+``target_pos`` (the env's IK target, which the moves accumulate into),
 ``goal_pos`` (pick-and-place) and ``environment_state`` (block, and goal). Success is reported as
 ``info["succeed"]``.
 
@@ -103,11 +104,19 @@ class SO101Env:
         self._views.close()
         self._env.close()
 
+    def _ik_target(self) -> np.ndarray:
+        """The env's integrated IK target (kept private by the env; the arm's point before the first move)."""
+        target = getattr(self._env, "_target_ee_pos", None)
+        return np.asarray(self._env.ik_point_pos if target is None else target)
+
     def _observe(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> SimObservation:
         environment_state = np.asarray(observation["environment_state"], dtype=np.float64)
         privileged = {
             "block_pos": environment_state[:3].tolist(),
             "grasp_pos": np.asarray(self._env.ik_point_pos, dtype=np.float64).tolist(),
+            # Where the position deltas move to: the env integrates them into its own IK target,
+            # which the arm follows with a lag. Chunks of deltas are anchored here, not at the arm.
+            "target_pos": np.asarray(self._ik_target(), dtype=np.float64).tolist(),
             "environment_state": environment_state.tolist(),
         }
         if self._pick_place:

@@ -1,0 +1,503 @@
+"""``ChunkedExecutor``: a chunking policy's inference off the tick thread, its rows indexed by tick.
+
+A policy that emits chunks of future actions takes longer than a tick to infer. The executor
+keeps the tick thread from ever waiting on it:
+
+* **The tick reads a buffer.** :meth:`ChunkedExecutor.step` returns this tick's action, or an
+  explicit "no action" (starved, stop), in O(1). It never waits on the worker.
+* **The worker owns the policy.** One thread runs inference and ``reset`` in the order they were
+  asked for, so a reset never runs concurrently with inference. One request is in flight at a time.
+* **Rows are indexed by tick.** A request carries the tick of its observation ``k``; row ``j``
+  of its chunk is for tick ``k + j``. When it arrives, its rows are anchored as absolute targets
+  at tick ``k`` (:mod:`openral_rskill.anchoring`), the rows for ticks already past are skipped, and
+  a chunk with fewer than ``min_rows`` usable rows is discarded and counted.
+* **Seams**: the new chunk ``replace``s the old rows, ``crossfade``s into them over ``k`` rows, or
+  is ``ensemble``d with them (ACT's exponential weights, oldest first).
+* **When to infer**: once the rows left fall to the recent p95 inference latency in ticks
+  (warm-up excluded) plus ``margin_ticks``.
+* **Starvation is explicit**: with no row for this tick the last target is held (counted); after
+  ``max_starved_ticks`` in a row the decision is the fallback (a local skill) or a safe stop.
+* **Deadlines, epochs**: a result later than ``deadline_ticks`` after its request is dropped by
+  id; a reset starts a new epoch, and results of an older epoch are dropped.
+
+Virtual latency (a simulation's): with ``virtual_delay`` the policy runs inline when asked and its
+chunk becomes usable exactly ``virtual_delay(request)`` ticks later: the executor's effect on
+success is then measured reproducibly, whatever the machine.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any, Final
+
+import numpy as np
+import structlog
+
+from openral_core import Action, ControlMode, WorldState
+from openral_observability import metrics, semconv, tracer
+from openral_observability.deferred import TickTelemetry
+from openral_rskill.anchoring import AbsoluteAnchor, Anchor
+
+_log = structlog.get_logger(__name__)
+
+_LATENCY_WINDOW: Final = 50
+"""Recent inference latencies (in ticks) the p95 is taken over."""
+
+
+class Seam(StrEnum):
+    """How a new chunk meets the rows of the one it follows."""
+
+    REPLACE = "replace"
+    CROSSFADE = "crossfade"
+    ENSEMBLE = "ensemble"
+
+
+class Fallback(StrEnum):
+    """What happens after too many starved ticks."""
+
+    HOLD = "hold"
+    """Keep holding the last target (counted every tick)."""
+    SKILL = "skill"
+    """Let a local fallback skill act (the decision says so; the runner calls it)."""
+    STOP = "stop"
+    """Stop safely: the robot holds and the run ends."""
+
+
+class Outcome(StrEnum):
+    """What :meth:`ChunkedExecutor.step` decided for this tick."""
+
+    ACTION = "action"
+    """A row of a chunk, for this very tick."""
+    HOLD = "hold"
+    """No row for this tick: the last target, held (a starved tick)."""
+    FALLBACK = "fallback"
+    """Starved too long: the fallback skill should act."""
+    STOP = "stop"
+    """Starved too long: stop safely."""
+    NONE = "none"
+    """Nothing to send yet (no chunk has arrived and there is no target to hold)."""
+
+
+@dataclass(frozen=True)
+class Decision:
+    """This tick's decision: an action (a chunk's row, or the held target) or why there is none."""
+
+    outcome: Outcome
+    action: Action | None = None
+
+
+@dataclass
+class ExecutorStats:
+    """Counters the runner reports (and telemetry counts as they happen)."""
+
+    requests: int = 0
+    chunks_used: int = 0
+    chunks_discarded: int = 0
+    results_late: int = 0
+    results_stale_epoch: int = 0
+    rows_skipped: int = 0
+    starved_ticks: int = 0
+    errors: int = 0
+    delays_ticks: list[int] = field(default_factory=list)
+
+
+@dataclass
+class _Request:
+    request_id: int
+    epoch: int
+    obs_tick: int
+    world: WorldState
+    ready_tick: int | None = None
+    """Virtual latency: the tick from which the chunk may be used."""
+    rows: np.ndarray | None = None
+    error: BaseException | None = None
+
+
+def _no_reset() -> None:
+    return
+
+
+_NO_RESET: Final = _no_reset
+
+PolicyFn = Callable[[WorldState], np.ndarray]
+"""Inference: the observation in, a ``(rows, dims)`` chunk out. Runs on the worker only."""
+
+
+class ChunkedExecutor:
+    """Runs ``infer`` on a worker and serves its chunks' rows tick by tick.
+
+    Args:
+        infer: The policy's inference (on the worker thread, or inline under virtual latency).
+        reset: The policy's reset (on the worker, between inferences).
+        action_names: Names of the action's dimensions (the ``Action``'s joint names).
+        chunk_size: Rows per chunk the policy returns.
+        anchor: How rows become targets and targets commands (absolute by default).
+        seam: How a new chunk meets the rows left of the old one.
+        crossfade_rows: Rows over which ``crossfade`` blends.
+        ensemble_decay: ACT's ``m``: weights ``exp(-m * i)`` for the i-th oldest chunk.
+        margin_ticks: Ask for the next chunk this many ticks before the expected need.
+        min_rows: A chunk with fewer usable rows on arrival is discarded.
+        deadline_ticks: A result arriving more than this many ticks after its request is dropped.
+        max_starved_ticks: Starved ticks in a row after which ``fallback`` decides.
+        fallback: ``hold``, ``skill`` or ``stop``.
+        warmup_requests: First requests whose latency does not count (compilation, caches).
+        virtual_delay: Simulation only: ticks from request to use, per request id.
+        skill_id: Put on the actions.
+        control_mode: Put on the actions.
+        executed_rows: Use at most the first rows of each chunk (the rest is dropped).
+        stale_start: Run each chunk from its first row when it arrives, rows sent as they are
+            (no anchoring, no skipping): the naive executor, kept to measure what indexing by tick gains.
+    """
+
+    def __init__(
+        self,
+        infer: PolicyFn,
+        *,
+        reset: Callable[[], None] | None = None,
+        action_names: list[str],
+        chunk_size: int,
+        anchor: Anchor | None = None,
+        seam: Seam = Seam.REPLACE,
+        crossfade_rows: int = 3,
+        ensemble_decay: float = 0.01,
+        margin_ticks: int = 1,
+        min_rows: int = 1,
+        deadline_ticks: int = 30,
+        max_starved_ticks: int = 10,
+        fallback: Fallback = Fallback.HOLD,
+        warmup_requests: int = 1,
+        virtual_delay: Callable[[int], int] | None = None,
+        skill_id: str | None = None,
+        control_mode: ControlMode = ControlMode.JOINT_POSITION,
+        executed_rows: int | None = None,
+        stale_start: bool = False,
+    ) -> None:
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+        self._infer = infer
+        self._reset_policy = reset
+        self.action_names = list(action_names)
+        self.chunk_size = chunk_size
+        self.anchor: Anchor = anchor or AbsoluteAnchor()
+        self.seam = Seam(seam)
+        self.crossfade_rows = max(1, crossfade_rows)
+        self.ensemble_decay = ensemble_decay
+        self.margin_ticks = margin_ticks
+        self.min_rows = max(1, min_rows)
+        self.deadline_ticks = deadline_ticks
+        self.max_starved_ticks = max_starved_ticks
+        self.fallback = Fallback(fallback)
+        self.warmup_requests = warmup_requests
+        self.virtual_delay = virtual_delay
+        self.skill_id = skill_id
+        self.control_mode = control_mode
+        self.executed_rows = executed_rows
+        self.stale_start = stale_start
+        if stale_start:
+            self.anchor = AbsoluteAnchor()
+        self.stats = ExecutorStats()
+        self._epoch = 0
+        self._next_id = 0
+        self._base_tick = 0
+        self._targets = np.zeros((0, len(self.action_names)))
+        self._ensemble: list[np.ndarray] = []
+        """ENSEMBLE: per buffered tick, the rows every chunk predicted for it, oldest first."""
+        self._held: np.ndarray | None = None
+        self._starved_in_row = 0
+        self._in_flight: _Request | None = None
+        self._latencies: collections.deque[int] = collections.deque(maxlen=_LATENCY_WINDOW)
+        self._done: collections.deque[_Request] = collections.deque()
+        self._jobs: collections.deque[_Request | Callable[[], None]] = collections.deque()
+        self._epoch_first_id = 0
+        self._wake = threading.Condition()
+        self._closed = False
+        self._abandoned: set[int] = set()
+        self._p95 = 1
+        self._telemetry: TickTelemetry | None = None
+        self._thread: threading.Thread | None = None
+        if virtual_delay is None:
+            self._thread = threading.Thread(target=self._work, name="openral-chunk-worker", daemon=True)
+            self._thread.start()
+
+    # -- the tick thread -------------------------------------------------------------------
+
+    def step(self, tick_idx: int, world: WorldState, telemetry: TickTelemetry | None = None) -> Decision:
+        """This tick's decision, in O(1): take in arrived chunks, serve the row for ``tick_idx``, maybe ask for more.
+
+        Args:
+            telemetry: The runner's tick telemetry: chunk spans become children of the tick,
+                recorded off the tick thread. Without it they go to the tracer directly.
+        """
+        self._telemetry = telemetry
+        self._take_arrivals(tick_idx)
+        self._maybe_request(tick_idx, world)
+        if self.virtual_delay is not None and self._done:
+            self._take_arrivals(tick_idx)  # a virtual delay of 0: this tick's own chunk
+        row = self._row_for(tick_idx)
+        if row is not None:
+            self._starved_in_row = 0
+            self._held = row
+            return Decision(Outcome.ACTION, self._action(self.anchor.to_command(row, world), world))
+        if self._held is None:
+            return Decision(Outcome.NONE)
+        self._starved_in_row += 1
+        self.stats.starved_ticks += 1
+        self._count(semconv.METRIC_EXECUTOR_STARVED_TICKS)
+        if self._starved_in_row > self.max_starved_ticks and self.fallback is not Fallback.HOLD:
+            return Decision(Outcome.FALLBACK if self.fallback is Fallback.SKILL else Outcome.STOP)
+        return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
+
+    def reset(self, run: Callable[[], None] | None = None) -> None:
+        """A new episode: drop every row and in-flight result (a new epoch) and reset the policy on the worker.
+
+        Args:
+            run: The reset to run on the worker instead of the one given at construction (a
+                simulation's, with the episode's seed).
+        """
+        self._epoch += 1
+        self._epoch_first_id = self._next_id
+        reset = run or self._reset_policy
+        self._targets = np.zeros((0, len(self.action_names)))
+        self._ensemble = []
+        self._held = None
+        self._starved_in_row = 0
+        self._in_flight = None
+        if self.virtual_delay is not None:
+            if reset is not None:
+                reset()
+            return
+        with self._wake:
+            self._jobs.append(reset if reset is not None else _NO_RESET)
+            self._wake.notify()
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop the worker (a hung inference is abandoned after ``timeout_s``: the thread is a daemon)."""
+        with self._wake:
+            self._closed = True
+            self._wake.notify()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    @property
+    def results_waiting(self) -> int:
+        """Results the worker has finished that the next :meth:`step` will take in."""
+        return len(self._done)
+
+    @property
+    def in_flight(self) -> bool:
+        """Whether a request is out (and not given up on)."""
+        return self._in_flight is not None
+
+    @property
+    def rows_left(self) -> int:
+        """Rows buffered for the current tick and after it (as of the last step)."""
+        return len(self._targets)
+
+    def latency_ticks_p95(self) -> int:
+        """The recent p95 inference latency in ticks (1 before any measurement)."""
+        return self._p95
+
+    # -- internals (tick thread) -----------------------------------------------------------
+
+    def _maybe_request(self, tick_idx: int, world: WorldState) -> None:
+        if self._in_flight is not None or self._abandoned:
+            return  # one request at a time, a given-up one included: it still occupies the worker
+        ahead = self._base_tick + len(self._targets) - tick_idx
+        if ahead > self.latency_ticks_p95() + self.margin_ticks:
+            return
+        request = _Request(self._next_id, self._epoch, tick_idx, world)
+        self._next_id += 1
+        self._in_flight = request
+        self.stats.requests += 1
+        if self.virtual_delay is not None:
+            index_in_epoch = request.request_id - self._epoch_first_id
+            request.ready_tick = tick_idx + max(0, int(self.virtual_delay(index_in_epoch)))
+            try:
+                request.rows = np.asarray(self._infer(world), dtype=np.float64)
+            except Exception as exc:
+                request.error = exc
+            self._done.append(request)
+            return
+        with self._wake:
+            self._jobs.append(request)
+            self._wake.notify()
+
+    def _take_arrivals(self, tick_idx: int) -> None:
+        while self._done:
+            request = self._done[0]
+            if request.ready_tick is not None and request.ready_tick > tick_idx:
+                return  # virtual latency: not usable yet
+            self._done.popleft()
+            if request.request_id in self._abandoned:
+                self._abandoned.discard(request.request_id)  # given up on at its deadline: dropped by id
+                continue
+            if request is self._in_flight:
+                self._in_flight = None
+            self._integrate(request, tick_idx)
+        in_flight = self._in_flight
+        if in_flight is not None and tick_idx - in_flight.obs_tick > self.deadline_ticks:
+            # Past its deadline: give up on it (another request may go out); if it ever arrives it is dropped.
+            self.stats.results_late += 1
+            self._abandoned.add(in_flight.request_id)
+            self._in_flight = None
+            self._chunk_span(in_flight, tick_idx, {semconv.ATTR_EXECUTOR_DISCARDED: "late"})
+
+    def _integrate(self, request: _Request, tick_idx: int) -> None:
+        delay = tick_idx - request.obs_tick
+        reason = self._refusal(request, delay)
+        if reason is not None:
+            self._chunk_span(request, tick_idx, {semconv.ATTR_EXECUTOR_DISCARDED: reason})
+            return
+        assert request.rows is not None
+        if request.request_id >= self.warmup_requests:
+            self._latencies.append(delay)
+            self._p95 = math.ceil(float(np.percentile(np.fromiter(self._latencies, float), 95)))
+        self.stats.delays_ticks.append(delay)
+        targets = self.anchor.to_targets(request.rows, request.world)
+        if self.executed_rows is not None:
+            targets = targets[: self.executed_rows]
+        skipped = 0 if self.stale_start else min(delay, len(targets))
+        usable = targets[skipped:]
+        self.stats.rows_skipped += skipped
+        outcome: dict[str, Any] = {
+            semconv.ATTR_EXECUTOR_ROWS_SKIPPED: skipped,
+            semconv.ATTR_EXECUTOR_ROWS_USED: len(usable) if len(usable) >= self.min_rows else 0,
+        }
+        if len(usable) < self.min_rows:
+            self.stats.chunks_discarded += 1
+            outcome[semconv.ATTR_EXECUTOR_DISCARDED] = "too_few_rows"
+        else:
+            self.stats.chunks_used += 1
+            self._merge(usable, tick_idx)
+        self._chunk_span(request, tick_idx, outcome)
+
+    def _chunk_span(self, request: _Request, tick_idx: int, outcome: dict[str, Any]) -> None:
+        """The request's span and metrics, recorded when it is settled (used, discarded or given up on)."""
+        delay = tick_idx - request.obs_tick
+        attributes: dict[str, Any] = {
+            semconv.ATTR_EXECUTOR_REQUEST_ID: request.request_id,
+            semconv.ATTR_EXECUTOR_OBS_TICK: request.obs_tick,
+            semconv.ATTR_EXECUTOR_READY_TICK: tick_idx,
+            semconv.ATTR_EXECUTOR_DELAY_TICKS: delay,
+            **outcome,
+        }
+        telemetry = self._telemetry
+        span = telemetry.start_span(semconv.SPAN_EXECUTOR_CHUNK, attributes) if telemetry else None
+        if span is None:
+            span = tracer().start_span(semconv.SPAN_EXECUTOR_CHUNK, attributes=attributes)
+        span.end()
+        reason = outcome.get(semconv.ATTR_EXECUTOR_DISCARDED)
+        if reason is None:
+            self._record(semconv.METRIC_EXECUTOR_DELAY, float(delay))
+        else:
+            self._count(semconv.METRIC_EXECUTOR_DISCARDED, {semconv.ATTR_EXECUTOR_DISCARDED: reason})
+
+    @staticmethod
+    def _count(name: str, attributes: dict[str, Any] | None = None) -> None:
+        metrics.add(name, 1, attributes)
+
+    @staticmethod
+    def _record(name: str, value: float) -> None:
+        metrics.histogram(name, unit="{tick}").record(value)
+
+    def _refusal(self, request: _Request, delay: int) -> str | None:
+        if request.epoch != self._epoch:
+            self.stats.results_stale_epoch += 1
+            return "stale_epoch"
+        if request.error is not None:
+            self.stats.errors += 1
+            _log.warning("chunk inference failed", error=str(request.error), request=request.request_id)
+            return "error"
+        if delay > self.deadline_ticks:
+            self.stats.results_late += 1
+            return "late"
+        rows = request.rows
+        if rows is None or rows.ndim != 2 or rows.shape[1] != len(self.action_names):
+            self.stats.errors += 1
+            return "bad_shape"
+        return None
+
+    def _merge(self, usable: np.ndarray, tick_idx: int) -> None:
+        old = self._rows_from(tick_idx)
+        if self.seam is Seam.REPLACE or len(old) == 0:
+            merged = usable
+            self._ensemble = [usable[i : i + 1] for i in range(len(usable))] if self.seam is Seam.ENSEMBLE else []
+        elif self.seam is Seam.CROSSFADE:
+            merged = np.array(usable, copy=True)
+            blend = min(self.crossfade_rows, len(old), len(usable))
+            for i in range(blend):
+                alpha = (i + 1) / (blend + 1)
+                merged[i] = (1 - alpha) * old[i] + alpha * usable[i]
+        else:
+            predictions = self._ensemble[tick_idx - self._base_tick :] if self._ensemble else []
+            stacks = []
+            for i in range(len(usable)):
+                previous = predictions[i] if i < len(predictions) else np.zeros((0, usable.shape[1]))
+                stacks.append(np.vstack([previous, usable[i : i + 1]]))
+            self._ensemble = stacks
+            merged = np.array([self._ensembled(stack) for stack in stacks])
+        self._base_tick = tick_idx
+        self._targets = merged
+
+    def _ensembled(self, stack: np.ndarray) -> np.ndarray:
+        weights = np.exp(-self.ensemble_decay * np.arange(len(stack)))
+        return np.asarray((weights[:, None] * stack).sum(axis=0) / weights.sum())
+
+    def _rows_from(self, tick_idx: int) -> np.ndarray:
+        start = tick_idx - self._base_tick
+        if start <= 0:
+            return self._targets
+        return self._targets[start:]
+
+    def _row_for(self, tick_idx: int) -> np.ndarray | None:
+        index = tick_idx - self._base_tick
+        if 0 <= index < len(self._targets):
+            if index > 0:  # drop the rows of past ticks
+                self._targets = self._targets[index:]
+                if self._ensemble:
+                    self._ensemble = self._ensemble[index:]
+                self._base_tick = tick_idx
+            return np.asarray(self._targets[0])
+        if index >= len(self._targets):
+            self._targets = self._targets[:0]
+            self._ensemble = []
+        return None
+
+    def _action(self, row: np.ndarray, world: WorldState) -> Action:
+        # Built without validation (the shape is the executor's own): this runs every tick.
+        return Action.model_construct(
+            control_mode=self.control_mode,
+            joint_names=self.action_names,
+            targets=[row.tolist()],
+            confidence=None,
+            stamp_ns=world.stamp_ns,
+            skill_id=self.skill_id,
+        )
+
+    # -- the worker ------------------------------------------------------------------------
+
+    def _work(self) -> None:
+        while True:
+            with self._wake:
+                while not self._jobs and not self._closed:
+                    self._wake.wait()
+                if self._closed:
+                    return
+                job = self._jobs.popleft()
+            if not isinstance(job, _Request):
+                try:
+                    job()
+                except Exception as exc:
+                    _log.warning("policy reset failed", error=str(exc))
+                continue
+            assert isinstance(job, _Request)
+            try:
+                job.rows = np.asarray(self._infer(job.world), dtype=np.float64)
+            except Exception as exc:
+                job.error = exc
+            self._done.append(job)  # deque.append is atomic: the tick thread takes it on its next step

@@ -1,0 +1,257 @@
+"""ChunkedExecutor: the tick never waits, rows are indexed by tick, resets, seams, starvation and deadlines."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from openral_core import JointState, PrivilegedState, WorldState
+from openral_rskill.anchoring import EndEffectorDeltaAnchor, StateOffsetAnchor
+from openral_rskill.executor import ChunkedExecutor, Fallback, Outcome, Seam
+
+NAMES = ["a", "b"]
+
+
+def world(tick: int, *, a: float = 0.0, privileged: dict[str, list[float]] | None = None) -> WorldState:
+    return WorldState(
+        stamp_ns=tick,
+        joint_state=JointState(names=NAMES, positions=[a, 0.0]),
+        privileged=None if privileged is None else PrivilegedState(values=privileged),
+    )
+
+
+class GatedPolicy:
+    """A chunk whose row j for an observation at tick k holds [k * 100 + j, -j]; it waits for the test's go."""
+
+    def __init__(self, rows: int = 8, *, gated: bool = True) -> None:
+        self.rows = rows
+        self.gate = threading.Semaphore(0)
+        self.gated = gated
+        self.calls: list[str] = []
+        self.inferring = False
+        self.overlapped = False
+
+    def infer(self, observed: WorldState) -> np.ndarray:
+        self.inferring = True
+        self.calls.append(f"infer@{observed.stamp_ns}")
+        if self.gated:
+            self.gate.acquire()
+        self.inferring = False
+        k = observed.stamp_ns
+        return np.array([[k * 100 + j, -j] for j in range(self.rows)], dtype=float)
+
+    def reset(self) -> None:
+        self.overlapped |= self.inferring
+        self.calls.append("reset")
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.001)
+
+
+def executor(policy: GatedPolicy, **kwargs: object) -> ChunkedExecutor:
+    options: dict[str, object] = {"action_names": NAMES, "chunk_size": policy.rows, "reset": policy.reset}
+    options.update(kwargs)
+    return ChunkedExecutor(policy.infer, **options)  # type: ignore[arg-type]
+
+
+def test_rows_skipped_equal_the_ticks_that_passed_while_inferring() -> None:
+    policy = GatedPolicy()
+    ex = executor(policy)
+    try:
+        for tick in range(5):  # inference under way: nothing to send yet, and the tick does not wait
+            assert ex.step(tick, world(tick)).outcome is Outcome.NONE
+        policy.gate.release()
+        wait_for(lambda: ex.results_waiting == 1)
+        decision = ex.step(5, world(5))
+        assert decision.outcome is Outcome.ACTION
+        assert decision.action is not None
+        assert decision.action.first == [5.0, -5.0]  # row 5 of the chunk observed at tick 0
+        assert ex.stats.rows_skipped == 5
+        assert ex.stats.delays_ticks == [5]
+        assert [ex.step(t, world(t)).action.first[0] for t in (6, 7)] == [6.0, 7.0]  # type: ignore[union-attr]
+    finally:
+        policy.gate.release(10)
+        ex.close()
+
+
+def test_a_chunk_with_too_few_usable_rows_is_discarded_and_counted() -> None:
+    policy = GatedPolicy(rows=4)
+    ex = executor(policy, min_rows=2)
+    try:
+        for tick in range(3):
+            ex.step(tick, world(tick))
+        policy.gate.release()
+        wait_for(lambda: ex.results_waiting == 1)
+        assert ex.step(3, world(3)).outcome is Outcome.NONE  # 1 usable row of 4: below min_rows
+        assert ex.stats.chunks_discarded == 1
+        assert ex.stats.chunks_used == 0
+    finally:
+        policy.gate.release(10)
+        ex.close()
+
+
+def test_a_reset_discards_the_chunk_in_flight_and_never_runs_during_inference() -> None:
+    policy = GatedPolicy()
+    ex = executor(policy)
+    try:
+        ex.step(0, world(0))
+        wait_for(lambda: policy.inferring)
+        ex.reset()
+        policy.gate.release()
+        wait_for(lambda: "reset" in policy.calls)
+        assert not policy.overlapped
+        assert policy.calls[:2] == ["infer@0", "reset"]  # the reset waited for the inference
+        decision = ex.step(1, world(1))
+        assert decision.outcome is Outcome.NONE  # the old epoch's chunk is not used...
+        assert ex.stats.results_stale_epoch == 1
+        assert ex.in_flight  # ...and a fresh request for this episode is out
+    finally:
+        policy.gate.release(10)
+        ex.close()
+
+
+def test_starvation_holds_the_last_target_then_falls_back() -> None:
+    policy = GatedPolicy(rows=3)
+    ex = executor(policy, max_starved_ticks=2, fallback=Fallback.SKILL, margin_ticks=0)
+    try:
+        ex.step(0, world(0))
+        policy.gate.release()  # the first chunk only: the next request stays stuck
+        wait_for(lambda: ex.results_waiting == 1)
+        outcomes = [ex.step(t, world(t)) for t in range(1, 8)]
+        # Rows 1 and 2 (row 0's tick has passed), then the last target held twice, then the fallback.
+        assert [d.outcome for d in outcomes] == [Outcome.ACTION] * 2 + [Outcome.HOLD] * 2 + [Outcome.FALLBACK] * 3
+        assert outcomes[2].action is not None
+        assert outcomes[2].action.first == [2.0, -2.0]
+        assert ex.stats.starved_ticks == 5
+    finally:
+        policy.gate.release(10)
+        ex.close()
+
+
+def test_a_hung_policy_never_blocks_the_tick_and_its_late_result_is_dropped() -> None:
+    policy = GatedPolicy()
+    ex = executor(policy, deadline_ticks=5)
+    try:
+        worst = 0.0
+        for tick in range(40):
+            started = time.perf_counter()
+            ex.step(tick, world(tick))
+            worst = max(worst, time.perf_counter() - started)
+        assert worst < 0.05  # the policy has been stuck the whole time: the tick never waited for it
+        assert ex.stats.results_late == 1  # given up on at its deadline; no request queued behind it
+        assert ex.stats.requests == 1
+        policy.gate.release(5)
+        wait_for(lambda: ex.results_waiting >= 1)
+        ex.step(40, world(40))
+        assert ex.stats.chunks_used == 0  # the late result was dropped by id when it came
+    finally:
+        policy.gate.release(10)
+        ex.close(timeout_s=1.0)
+
+
+def test_a_slow_policy_at_30_hz_keeps_every_tick_short() -> None:
+    """300 ms inference against 33 ms ticks: the tick stays in microseconds and rows match elapsed ticks."""
+
+    class Slow(GatedPolicy):
+        def infer(self, observed: WorldState) -> np.ndarray:
+            time.sleep(0.3)
+            k = observed.stamp_ns
+            return np.array([[k * 100 + j, -j] for j in range(self.rows)], dtype=float)
+
+    policy = Slow(rows=30, gated=False)
+    ex = executor(policy)
+    period = 1 / 30
+    start = time.monotonic()
+    longest = 0.0
+    try:
+        for tick in range(45):
+            time.sleep(max(0.0, start + tick * period - time.monotonic()))
+            t0 = time.perf_counter()
+            decision = ex.step(tick, world(tick))
+            longest = max(longest, time.perf_counter() - t0)
+            if decision.outcome is Outcome.ACTION:
+                assert decision.action is not None
+                obs_tick, row = divmod(int(decision.action.first[0]), 100)
+                assert obs_tick + row == tick  # each row is sent at exactly the tick it was made for
+    finally:
+        ex.close()
+    assert longest < 0.3 / 2  # far below one inference, even on a loaded machine
+    assert ex.stats.chunks_used >= 1
+    assert ex.stats.rows_skipped == sum(ex.stats.delays_ticks)
+
+
+def test_virtual_latency_makes_a_chunk_usable_exactly_d_ticks_later() -> None:
+    policy = GatedPolicy(gated=False)
+    ex = executor(policy, virtual_delay=lambda _request: 2)
+    assert [ex.step(t, world(t)).outcome for t in (0, 1)] == [Outcome.NONE, Outcome.NONE]
+    decision = ex.step(2, world(2))
+    assert decision.action is not None
+    assert decision.action.first == [2.0, -2.0]
+    assert ex.stats.delays_ticks == [2]
+
+
+@pytest.mark.parametrize(
+    ("seam", "expected"),
+    [
+        (Seam.REPLACE, [0.0, 1.0, 200.0, 201.0]),
+        (Seam.CROSSFADE, [0.0, 1.0, 0.5 * 2.0 + 0.5 * 200.0, 201.0]),
+    ],
+)
+def test_seams_between_the_old_chunk_and_the_new(seam: Seam, expected: list[float]) -> None:
+    policy = GatedPolicy(rows=6, gated=False)
+    ex = executor(policy, virtual_delay=lambda _request: 0, seam=seam, crossfade_rows=1, margin_ticks=3)
+    firsts = [ex.step(t, world(t)).action.first[0] for t in range(4)]  # type: ignore[union-attr]
+    # Chunk 0 serves ticks 0 and 1; at tick 2 the rows left (4) reach p95 + margin, and chunk 1,
+    # observed at tick 2 with no delay, meets chunk 0's row for tick 2 there.
+    assert firsts == pytest.approx(expected)
+
+
+def test_ensemble_weights_older_predictions_first() -> None:
+    policy = GatedPolicy(rows=4, gated=False)
+    ex = executor(policy, virtual_delay=lambda _request: 0, seam=Seam.ENSEMBLE, ensemble_decay=0.0, margin_ticks=10)
+    values = [ex.step(t, world(t)).action.first[0] for t in range(2)]  # type: ignore[union-attr]
+    # A new chunk every tick; with decay 0 each tick's target is the mean of every prediction for it.
+    assert values[0] == 0.0
+    assert values[1] == pytest.approx((1.0 + 100.0) / 2)
+
+
+def test_relative_rows_are_anchored_at_the_observation_and_end_effector_moves_at_the_tick_sent() -> None:
+    offsets = np.array([[0.1, 0.0], [0.2, 0.0]])
+    anchored = StateOffsetAnchor(NAMES).to_targets(offsets, world(0, a=1.0))
+    np.testing.assert_allclose(anchored, [[1.1, 0.0], [1.2, 0.0]])
+
+    anchor = EndEffectorDeltaAnchor("ee", scale=0.1, position_dims=(0,), limit=1.0)
+    moves = np.array([[1.0, 0.5], [1.0, 0.0]])
+    targets = anchor.to_targets(moves, world(0, privileged={"ee": [2.0]}))
+    np.testing.assert_allclose(targets, [[2.1, 0.5], [2.2, 0.0]])  # absolute dims (a gripper) kept
+    # Sent later from where the arm really is: the move that reaches the target, clipped to the bound.
+    np.testing.assert_allclose(anchor.to_command(targets[1], world(3, privileged={"ee": [2.15]})), [0.5, 0.0])
+    np.testing.assert_allclose(anchor.to_command(targets[1], world(3, privileged={"ee": [1.0]})), [1.0, 0.0])
+
+
+def test_each_chunk_request_is_a_span_and_starvation_and_discards_are_counted(telemetry) -> None:
+    from openral_observability import semconv  # noqa: PLC0415
+
+    policy = GatedPolicy(rows=3, gated=False)
+    delays = [1, 5]
+    ex = executor(policy, virtual_delay=lambda i: delays[i] if i < len(delays) else 0, min_rows=1, margin_ticks=0)
+    for tick in range(8):
+        ex.step(tick, world(tick))
+    spans = telemetry.spans(semconv.SPAN_EXECUTOR_CHUNK)
+    assert [s.attributes[semconv.ATTR_EXECUTOR_DELAY_TICKS] for s in spans[:2]] == [1, 5]
+    used, discarded = spans[:2]
+    assert used.attributes[semconv.ATTR_EXECUTOR_OBS_TICK] == 0
+    assert used.attributes[semconv.ATTR_EXECUTOR_ROWS_SKIPPED] == 1
+    assert used.attributes[semconv.ATTR_EXECUTOR_ROWS_USED] == 2
+    # Observed at tick 2, usable at 7: all 3 rows are for past ticks.
+    assert discarded.attributes[semconv.ATTR_EXECUTOR_DISCARDED] == "too_few_rows"
+    assert telemetry.metric(semconv.METRIC_EXECUTOR_DISCARDED, **{semconv.ATTR_EXECUTOR_DISCARDED: "too_few_rows"}) == 1
+    assert telemetry.metric(semconv.METRIC_EXECUTOR_STARVED_TICKS) == ex.stats.starved_ticks > 0

@@ -1,0 +1,130 @@
+"""The onnx_policy skill: a real ONNX Runtime session, its metadata, its observation, its errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from openral_core import JointSpec, JointState, PrivilegedState, RobotManifest, ROSConfigError, WorldState
+
+onnx = pytest.importorskip("onnx", reason="needs the 'policy' extra")
+pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
+
+from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+
+from openral_rskill.anchoring import EndEffectorDeltaAnchor  # noqa: E402
+from openral_rskill.onnx_policy import OnnxPolicySkill  # noqa: E402
+
+ROBOT = RobotManifest(
+    robot_id="arm",
+    joints=[JointSpec(name=n, lower=-1, upper=1, velocity_limit=1) for n in ("a", "b")],
+)
+
+
+def tiny_model(path: Path, *, chunk: int = 3, obs_dim: int = 3) -> Path:
+    """actions[0, j] = [obs[0] + j, obs[1] * 2]: row j of the chunk is checkable by hand."""
+    pick = np.zeros((obs_dim, 2), dtype=np.float32)
+    pick[0, 0] = 1.0
+    pick[1, 1] = 2.0
+    offsets = np.array([[j, 0.0] for j in range(chunk)], dtype=np.float32).reshape(1, chunk, 2)
+    nodes = [
+        helper.make_node("MatMul", ["observation", "pick"], ["row"]),
+        helper.make_node("Reshape", ["row", "row_shape"], ["row3"]),
+        helper.make_node("Add", ["row3", "offsets"], ["actions"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "tiny",
+        [helper.make_tensor_value_info("observation", TensorProto.FLOAT, [1, obs_dim])],
+        [helper.make_tensor_value_info("actions", TensorProto.FLOAT, [1, chunk, 2])],
+        [
+            numpy_helper.from_array(pick, "pick"),
+            numpy_helper.from_array(np.array([1, 1, 2], dtype=np.int64), "row_shape"),
+            numpy_helper.from_array(offsets, "offsets"),
+        ],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    helper.set_model_props(model, {"chunk_size": str(chunk), "description": "test model"})
+    path.write_bytes(model.SerializeToString())
+    return path
+
+
+def world() -> WorldState:
+    return WorldState(
+        stamp_ns=1,
+        joint_state=JointState(names=["a", "b"], positions=[0.5, 0.25]),
+        privileged=PrivilegedState(values={"block": [7.0]}),
+    )
+
+
+def test_chunk_size_comes_from_the_models_metadata_and_rows_from_the_session(tmp_path: Path) -> None:
+    skill = OnnxPolicySkill.from_config(
+        {"model": str(tiny_model(tmp_path / "m.onnx")), "observation": ["joint_state", "privileged.block"]},
+        robot=ROBOT,
+        rate_hz=10,
+    )
+    assert skill.info.chunk_size == 3
+    skill.configure()
+    skill.activate()
+    action = skill.step(world())
+    np.testing.assert_allclose(action.targets, [[0.5, 0.5], [1.5, 0.5], [2.5, 0.5]])
+    np.testing.assert_allclose(skill.observation_vector(world()), [[0.5, 0.25, 7.0]])
+
+
+def test_normalisation_outside_the_graph_is_applied(tmp_path: Path) -> None:
+    skill = OnnxPolicySkill.from_config(
+        {
+            "model": str(tiny_model(tmp_path / "m.onnx")),
+            "observation": ["joint_state", "privileged.block"],
+            "obs_mean": [0.5, 0.0, 0.0],
+            "obs_std": [1.0, 0.5, 1.0],
+        },
+        robot=ROBOT,
+        rate_hz=10,
+    )
+    skill.configure()
+    skill.activate()
+    np.testing.assert_allclose(skill.step(world()).targets[0], [0.0, 1.0])
+
+
+def test_delta_ee_rows_are_anchored_where_the_parameters_say(tmp_path: Path) -> None:
+    skill = OnnxPolicySkill.from_config(
+        {
+            "model": str(tiny_model(tmp_path / "m.onnx")),
+            "observation": ["joint_state", "privileged.block"],
+            "representation": "delta_ee",
+            "anchor_key": "grasp_pos",
+            "action_scale": 0.025,
+            "position_dims": [0],
+        },
+        robot=ROBOT,
+        rate_hz=10,
+    )
+    anchor = skill.action_anchor()
+    assert isinstance(anchor, EndEffectorDeltaAnchor)
+    assert (anchor.position_key, anchor.scale, anchor.dims) == ("grasp_pos", 0.025, [0])
+
+
+@pytest.mark.parametrize(
+    ("params", "field"),
+    [
+        ({"model": "missing.onnx", "observation": ["joint_state"]}, "params.model"),
+        ({"observation": ["joint_state"], "dt_s": 0.05}, "params.dt_s"),
+        ({"observation": ["joint_state"], "representation": "delta_ee"}, "params.anchor_key"),
+    ],
+)
+def test_bad_parameters_name_the_field(tmp_path: Path, params: dict[str, object], field: str) -> None:
+    params = {"model": str(tiny_model(tmp_path / "m.onnx")), **params}
+    with pytest.raises(ROSConfigError) as caught:
+        OnnxPolicySkill.from_config(params, robot=ROBOT, rate_hz=10).action_anchor()
+    assert caught.value.field == field
+
+
+def test_a_file_that_is_not_a_model_is_a_configuration_error(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not a model")
+    with pytest.raises(ROSConfigError, match="cannot load"):
+        OnnxPolicySkill.from_config({"model": str(bad), "observation": ["joint_state"]}, robot=ROBOT, rate_hz=10)

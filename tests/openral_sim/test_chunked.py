@@ -1,0 +1,120 @@
+"""A chunking skill in simulation: the executor between it and the env, with reproducible virtual latency."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from openral_core import (
+    Action,
+    ExecutorConfig,
+    RobotManifest,
+    RSkillInfo,
+    SimEnvironment,
+    TickResult,
+    VirtualLatency,
+    WithheldReason,
+    WorldState,
+)
+from openral_rskill.base import RSkillBase
+from openral_runner.observer import TickObserver
+from openral_sim.envs.mock import MockParams, MockReachEnv
+from openral_sim.runner import SimRunner
+
+
+class ChunkOfSteps(RSkillBase):
+    """Row j of a chunk observed at step k is [k, j]: what was executed when is readable from the action."""
+
+    def __init__(self, robot: RobotManifest, rows: int) -> None:
+        super().__init__()
+        self.names = robot.joint_names
+        self._info = RSkillInfo(skill_id="chunk_of_steps", chunk_size=rows)
+        self.rows = rows
+        self.resets: list[int | None] = []
+
+    @classmethod
+    def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> ChunkOfSteps:
+        return cls(robot, 5)
+
+    @property
+    def info(self) -> RSkillInfo:
+        return self._info
+
+    def _on_reset(self) -> None:
+        self.resets.append(self.episode_seed)
+
+    def _step_impl(self, world_state: WorldState) -> Action:
+        step = float(world_state.stamp_ns)
+        return Action(joint_names=self.names, targets=[[step * 0 + 0.01 * j, 0.0] for j in range(self.rows)])
+
+
+class Steps(TickObserver):
+    def __init__(self) -> None:
+        self.ticks: list[TickResult] = []
+
+    def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
+        if tick.step_idx is not None:
+            self.ticks.append(tick)
+
+    def close(self) -> None:
+        return
+
+
+def _run(latency: VirtualLatency, config: ExecutorConfig | None = None) -> tuple[SimRunner, Steps, ChunkOfSteps]:
+    env = MockReachEnv(MockParams())
+    scene = SimEnvironment(
+        name="reach",
+        env="mock",
+        task="reach",
+        success_key="is_success",
+        max_steps=12,
+        n_episodes=2,
+        seed=4,
+        virtual_latency=latency,
+        executor=config or ExecutorConfig(),
+    )
+    skill = ChunkOfSteps(env.spec.action_manifest("mock"), 5)
+    runner = SimRunner(env=env, scene=scene, skill=skill)
+    steps = Steps()
+    runner.observers.append(steps)
+    skill.configure()
+    skill.activate()
+    runner.activate()
+    try:
+        runner.run(max_ticks=100)
+    finally:
+        runner.deactivate()
+    return runner, steps, skill
+
+
+def test_rows_arrive_after_the_virtual_delay_and_the_robot_holds_until_then() -> None:
+    runner, steps, skill = _run(VirtualLatency(ticks=2))
+    first = [t for t in steps.ticks if t.episode_idx == 0]
+    assert [t.withheld_reason for t in first[:2]] == [WithheldReason.AWAITING_CHUNK] * 2
+    assert not first[0].action_applied
+    # At step 2 the chunk observed at step 0 is used from its row 2: two rows skipped for two ticks.
+    assert first[2].sent_action == [0.02, 0.0]
+    assert runner.executor is not None
+    assert runner.executor.stats.delays_ticks[0] == 2
+    assert runner.executor.stats.rows_skipped == sum(runner.executor.stats.delays_ticks)
+    # The skill was reset with each episode's seed, on the executor, once per episode.
+    assert skill.resets == [4, 5]
+
+
+def test_the_same_seeds_give_the_same_ticks_with_jittered_latency() -> None:
+    latency = VirtualLatency(ticks=1, jitter_ticks=2)
+    _, first, _ = _run(latency)
+    _, second, _ = _run(latency)
+    assert [t.sent_action for t in first.ticks] == [t.sent_action for t in second.ticks]
+    assert [t.withheld_reason for t in first.ticks] == [t.withheld_reason for t in second.ticks]
+
+
+def test_stale_start_runs_each_chunk_from_its_first_row() -> None:
+    runner, steps, _ = _run(VirtualLatency(ticks=2), ExecutorConfig(indexing="stale_start"))
+    first = [t for t in steps.ticks if t.episode_idx == 0]
+    assert first[2].sent_action == [0.0, 0.0]  # row 0, two ticks late
+    assert runner.executor is not None
+    assert runner.executor.stats.rows_skipped == 0
+    assert np.isfinite(runner.episode_results[0].sum_reward)
