@@ -45,6 +45,36 @@ class Action(BaseModel):
                 raise ValueError(f"targets[{k}] has {len(row)} values for {n} joint names")
         return self
 
+    @classmethod
+    def trusted(
+        cls,
+        *,
+        control_mode: ControlMode,
+        joint_names: list[str],
+        targets: list[list[float]],
+        stamp_ns: int,
+        skill_id: str | None,
+    ) -> Action:
+        """An ``Action`` of values a component computed itself, without validating them again.
+
+        For a path taken every tick (the chunk executor's row); the caller guarantees the types
+        and the shape. Input from outside goes through ``Action(...)``.
+        """
+        action = cls.__new__(cls)
+        values = {
+            "control_mode": control_mode,
+            "joint_names": joint_names,
+            "targets": targets,
+            "confidence": None,
+            "stamp_ns": stamp_ns,
+            "skill_id": skill_id,
+        }
+        object.__setattr__(action, "__dict__", values)
+        object.__setattr__(action, "__pydantic_fields_set__", set(values))
+        object.__setattr__(action, "__pydantic_extra__", None)
+        object.__setattr__(action, "__pydantic_private__", None)
+        return action
+
     @property
     def horizon(self) -> int:
         """Number of steps in the action (1 unless it is a chunk)."""

@@ -470,11 +470,10 @@ class ChunkedExecutor:
 
     def _action(self, row: np.ndarray, world: WorldState) -> Action:
         # Built without validation (the shape is the executor's own): this runs every tick.
-        return Action.model_construct(
+        return Action.trusted(
             control_mode=self.control_mode,
             joint_names=self.action_names,
             targets=[row.tolist()],
-            confidence=None,
             stamp_ns=world.stamp_ns,
             skill_id=self.skill_id,
         )
