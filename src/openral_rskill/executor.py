@@ -38,7 +38,7 @@ from typing import Any, Final
 import numpy as np
 import structlog
 
-from openral_core import Action, ControlMode, WorldState
+from openral_core import Action, ControlMode, SeamMode, StarvationFallback, WorldState
 from openral_observability import metrics, semconv, tracer
 from openral_observability.deferred import TickTelemetry
 from openral_rskill.anchoring import AbsoluteAnchor, Anchor
@@ -47,25 +47,6 @@ _log = structlog.get_logger(__name__)
 
 _LATENCY_WINDOW: Final = 50
 """Recent inference latencies (in ticks) the p95 is taken over."""
-
-
-class Seam(StrEnum):
-    """How a new chunk meets the rows of the one it follows."""
-
-    REPLACE = "replace"
-    CROSSFADE = "crossfade"
-    ENSEMBLE = "ensemble"
-
-
-class Fallback(StrEnum):
-    """What happens after too many starved ticks."""
-
-    HOLD = "hold"
-    """Keep holding the last target (counted every tick)."""
-    SKILL = "skill"
-    """Let a local fallback skill act (the decision says so; the runner calls it)."""
-    STOP = "stop"
-    """Stop safely: the robot holds and the run ends."""
 
 
 class Outcome(StrEnum):
@@ -162,14 +143,14 @@ class ChunkedExecutor:
         action_names: list[str],
         chunk_size: int,
         anchor: Anchor | None = None,
-        seam: Seam = Seam.REPLACE,
+        seam: SeamMode = SeamMode.REPLACE,
         crossfade_rows: int = 3,
         ensemble_decay: float = 0.01,
         margin_ticks: int = 1,
         min_rows: int = 1,
         deadline_ticks: int = 30,
         max_starved_ticks: int = 10,
-        fallback: Fallback = Fallback.HOLD,
+        fallback: StarvationFallback = StarvationFallback.HOLD,
         warmup_requests: int = 1,
         virtual_delay: Callable[[int], int] | None = None,
         skill_id: str | None = None,
@@ -184,14 +165,14 @@ class ChunkedExecutor:
         self.action_names = list(action_names)
         self.chunk_size = chunk_size
         self.anchor: Anchor = anchor or AbsoluteAnchor()
-        self.seam = Seam(seam)
+        self.seam = SeamMode(seam)
         self.crossfade_rows = max(1, crossfade_rows)
         self.ensemble_decay = ensemble_decay
         self.margin_ticks = margin_ticks
         self.min_rows = max(1, min_rows)
         self.deadline_ticks = deadline_ticks
         self.max_starved_ticks = max_starved_ticks
-        self.fallback = Fallback(fallback)
+        self.fallback = StarvationFallback(fallback)
         self.warmup_requests = warmup_requests
         self.virtual_delay = virtual_delay
         self.skill_id = skill_id
@@ -248,8 +229,8 @@ class ChunkedExecutor:
         self._starved_in_row += 1
         self.stats.starved_ticks += 1
         self._count(semconv.METRIC_EXECUTOR_STARVED_TICKS)
-        if self._starved_in_row > self.max_starved_ticks and self.fallback is not Fallback.HOLD:
-            return Decision(Outcome.FALLBACK if self.fallback is Fallback.SKILL else Outcome.STOP)
+        if self._starved_in_row > self.max_starved_ticks and self.fallback is not StarvationFallback.HOLD:
+            return Decision(Outcome.FALLBACK if self.fallback is StarvationFallback.SKILL else Outcome.STOP)
         return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
 
     def reset(self, run: Callable[[], None] | None = None) -> None:
@@ -424,10 +405,10 @@ class ChunkedExecutor:
 
     def _merge(self, usable: np.ndarray, tick_idx: int) -> None:
         old = self._rows_from(tick_idx)
-        if self.seam is Seam.REPLACE or len(old) == 0:
+        if self.seam is SeamMode.REPLACE or len(old) == 0:
             merged = usable
-            self._ensemble = [usable[i : i + 1] for i in range(len(usable))] if self.seam is Seam.ENSEMBLE else []
-        elif self.seam is Seam.CROSSFADE:
+            self._ensemble = [usable[i : i + 1] for i in range(len(usable))] if self.seam is SeamMode.ENSEMBLE else []
+        elif self.seam is SeamMode.CROSSFADE:
             merged = np.array(usable, copy=True)
             blend = min(self.crossfade_rows, len(old), len(usable))
             for i in range(blend):

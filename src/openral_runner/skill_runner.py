@@ -32,7 +32,7 @@ from openral_core import (
 from openral_core.actions import action_problem
 from openral_observability import metrics, semconv
 from openral_rskill.base import RSkillBase
-from openral_rskill.executor import ChunkedExecutor, Fallback, Outcome, Seam
+from openral_rskill.executor import ChunkedExecutor, Outcome
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.observer import TickObserver
 from openral_runner.safety import NullSafetyClient, SafetyClient
@@ -279,14 +279,14 @@ def _executor_for(
         action_names=action_names,
         chunk_size=skill.info.chunk_size,
         anchor=skill.action_anchor(),
-        seam=Seam(config.seam.value),
+        seam=config.seam,
         crossfade_rows=config.crossfade_rows,
         ensemble_decay=config.ensemble_decay,
         margin_ticks=config.margin_ticks,
         min_rows=config.min_rows,
         deadline_ticks=config.deadline_ticks,
         max_starved_ticks=config.max_starved_ticks,
-        fallback=Fallback(config.fallback.value),
+        fallback=config.fallback,
         executed_rows=config.executed_rows,
         stale_start=config.indexing == "stale_start",
         virtual_delay=virtual_delay,

@@ -9,9 +9,9 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from openral_core import JointState, PrivilegedState, WorldState
+from openral_core import JointState, PrivilegedState, SeamMode, StarvationFallback, WorldState
 from openral_rskill.anchoring import EndEffectorDeltaAnchor, StateOffsetAnchor
-from openral_rskill.executor import ChunkedExecutor, Fallback, Outcome, Seam
+from openral_rskill.executor import ChunkedExecutor, Outcome
 
 NAMES = ["a", "b"]
 
@@ -120,7 +120,7 @@ def test_a_reset_discards_the_chunk_in_flight_and_never_runs_during_inference() 
 
 def test_starvation_holds_the_last_target_then_falls_back() -> None:
     policy = GatedPolicy(rows=3)
-    ex = executor(policy, max_starved_ticks=2, fallback=Fallback.SKILL, margin_ticks=0)
+    ex = executor(policy, max_starved_ticks=2, fallback=StarvationFallback.SKILL, margin_ticks=0)
     try:
         ex.step(0, world(0))
         policy.gate.release()  # the first chunk only: the next request stays stuck
@@ -183,7 +183,7 @@ def test_a_slow_policy_at_30_hz_keeps_every_tick_short() -> None:
                 assert obs_tick + row == tick  # each row is sent at exactly the tick it was made for
     finally:
         ex.close()
-    assert longest < 0.3 / 2  # far below one inference, even on a loaded machine
+    assert longest < 0.25  # below one inference (0.3 s): the tick never waited for it, even on a loaded machine
     assert ex.stats.chunks_used >= 1
     assert ex.stats.rows_skipped == sum(ex.stats.delays_ticks)
 
@@ -201,11 +201,11 @@ def test_virtual_latency_makes_a_chunk_usable_exactly_d_ticks_later() -> None:
 @pytest.mark.parametrize(
     ("seam", "expected"),
     [
-        (Seam.REPLACE, [0.0, 1.0, 200.0, 201.0]),
-        (Seam.CROSSFADE, [0.0, 1.0, 0.5 * 2.0 + 0.5 * 200.0, 201.0]),
+        (SeamMode.REPLACE, [0.0, 1.0, 200.0, 201.0]),
+        (SeamMode.CROSSFADE, [0.0, 1.0, 0.5 * 2.0 + 0.5 * 200.0, 201.0]),
     ],
 )
-def test_seams_between_the_old_chunk_and_the_new(seam: Seam, expected: list[float]) -> None:
+def test_seams_between_the_old_chunk_and_the_new(seam: SeamMode, expected: list[float]) -> None:
     policy = GatedPolicy(rows=6, gated=False)
     ex = executor(policy, virtual_delay=lambda _request: 0, seam=seam, crossfade_rows=1, margin_ticks=3)
     firsts = [ex.step(t, world(t)).action.first[0] for t in range(4)]  # type: ignore[union-attr]
@@ -216,7 +216,7 @@ def test_seams_between_the_old_chunk_and_the_new(seam: Seam, expected: list[floa
 
 def test_ensemble_weights_older_predictions_first() -> None:
     policy = GatedPolicy(rows=4, gated=False)
-    ex = executor(policy, virtual_delay=lambda _request: 0, seam=Seam.ENSEMBLE, ensemble_decay=0.0, margin_ticks=10)
+    ex = executor(policy, virtual_delay=lambda _request: 0, seam=SeamMode.ENSEMBLE, ensemble_decay=0.0, margin_ticks=10)
     values = [ex.step(t, world(t)).action.first[0] for t in range(2)]  # type: ignore[union-attr]
     # A new chunk every tick; with decay 0 each tick's target is the mean of every prediction for it.
     assert values[0] == 0.0
