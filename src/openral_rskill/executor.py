@@ -96,6 +96,8 @@ class _Request:
     ready_tick: int | None = None
     """Virtual latency: the tick from which the chunk may be used."""
     rows: np.ndarray | None = None
+    targets: np.ndarray | None = None
+    """The rows anchored at the observation, computed where the rows were (off the tick thread)."""
     error: BaseException | None = None
 
 
@@ -299,7 +301,7 @@ class ChunkedExecutor:
             index_in_epoch = request.request_id - self._epoch_first_id
             request.ready_tick = tick_idx + max(0, int(self.virtual_delay(index_in_epoch)))
             try:
-                request.rows = np.asarray(self._infer(world), dtype=np.float64)
+                self._prepare(request, self._infer(world))
             except Exception as exc:
                 request.error = exc
             self._done.append(request)
@@ -340,7 +342,8 @@ class ChunkedExecutor:
             ordered = sorted(self._latencies)  # a few dozen ints: cheaper than numpy on the tick thread
             self._p95 = ordered[math.ceil(0.95 * len(ordered)) - 1]
         self.stats.delays_ticks.append(delay)
-        targets = self.anchor.to_targets(request.rows, request.world)
+        targets = request.targets
+        assert targets is not None
         if self.executed_rows is not None:
             targets = targets[: self.executed_rows]
         skipped = 0 if self.stale_start else min(delay, len(targets))
@@ -462,6 +465,13 @@ class ChunkedExecutor:
 
     # -- the worker ------------------------------------------------------------------------
 
+    def _prepare(self, request: _Request, output: np.ndarray) -> None:
+        """Keep a result's rows and anchor them at its observation, so the tick only indexes them."""
+        rows = np.asarray(output, dtype=np.float64)
+        request.rows = rows
+        if rows.ndim == 2 and rows.shape[1] == len(self.action_names):
+            request.targets = self.anchor.to_targets(rows, request.world)
+
     def _work(self) -> None:
         while True:
             with self._wake:
@@ -478,7 +488,7 @@ class ChunkedExecutor:
                 continue
             assert isinstance(job, _Request)
             try:
-                job.rows = np.asarray(self._infer(job.world), dtype=np.float64)
+                self._prepare(job, self._infer(job.world))
             except Exception as exc:
                 job.error = exc
             self._done.append(job)  # deque.append is atomic: the tick thread takes it on its next step
