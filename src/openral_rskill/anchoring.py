@@ -58,6 +58,16 @@ class AbsoluteAnchor:
         return target
 
 
+class UnanchoredRows:
+    """Relative rows whose reference cannot be measured: each chunk runs from its first row when it arrives."""
+
+    def to_targets(self, rows: np.ndarray, observed: WorldState) -> np.ndarray:
+        return rows
+
+    def to_command(self, target: np.ndarray, now: WorldState) -> np.ndarray:
+        return target
+
+
 class StateOffsetAnchor:
     """Rows are offsets from the measured joints named ``names`` at the observation's tick."""
 

@@ -41,7 +41,7 @@ import structlog
 from openral_core import Action, ControlMode, SeamMode, StarvationFallback, WorldState
 from openral_observability import metrics, semconv, tracer
 from openral_observability.deferred import TickTelemetry
-from openral_rskill.anchoring import AbsoluteAnchor, Anchor
+from openral_rskill.anchoring import AbsoluteAnchor, Anchor, UnanchoredRows
 
 _log = structlog.get_logger(__name__)
 
@@ -180,8 +180,14 @@ class ChunkedExecutor:
         self.skill_id = skill_id
         self.control_mode = control_mode
         self.executed_rows = executed_rows
-        self.stale_start = stale_start
-        if stale_start:
+        self.stale_start = stale_start or isinstance(self.anchor, UnanchoredRows)
+        if isinstance(self.anchor, UnanchoredRows) and not stale_start:
+            _log.warning(
+                "the policy's rows cannot be anchored at their observation: each chunk runs from its first row "
+                "when it arrives (stale start), however late",
+                skill=skill_id,
+            )
+        if self.stale_start:
             self.anchor = AbsoluteAnchor()
         self.stats = ExecutorStats()
         self._epoch = 0

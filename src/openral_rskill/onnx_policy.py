@@ -34,6 +34,7 @@ from openral_rskill.anchoring import (
     Anchor,
     EndEffectorDeltaAnchor,
     StateOffsetAnchor,
+    UnanchoredRows,
 )
 from openral_rskill.base import RSkillBase, validate_params
 
@@ -132,10 +133,10 @@ class OnnxPolicySkill(RSkillBase):
         """How the executor anchors this model's rows (from ``representation``)."""
         if self.representation is ActionRepresentation.RELATIVE_TO_STATE:
             return StateOffsetAnchor(self.names)
-        if self.representation is ActionRepresentation.DELTA_EE:
-            if self.anchor_key is None:
-                raise ROSConfigError("delta_ee rows are anchored at a position", field="params.anchor_key")
+        if self.representation is ActionRepresentation.DELTA_EE and self.anchor_key is not None:
             return EndEffectorDeltaAnchor(self.anchor_key, self.action_scale, self.params.position_dims)
+        if self.representation in (ActionRepresentation.DELTA_EE, ActionRepresentation.UNANCHORED):
+            return UnanchoredRows()  # no position to anchor at: the executor starts each chunk stale, and warns
         return AbsoluteAnchor()
 
     def _on_configure(self) -> None:

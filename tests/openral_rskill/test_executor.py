@@ -255,3 +255,18 @@ def test_each_chunk_request_is_a_span_and_starvation_and_discards_are_counted(te
     assert discarded.attributes[semconv.ATTR_EXECUTOR_DISCARDED] == "too_few_rows"
     assert telemetry.metric(semconv.METRIC_EXECUTOR_DISCARDED, **{semconv.ATTR_EXECUTOR_DISCARDED: "too_few_rows"}) == 1
     assert telemetry.metric(semconv.METRIC_EXECUTOR_STARVED_TICKS) == ex.stats.starved_ticks > 0
+
+
+def test_rows_that_cannot_be_anchored_start_stale_with_a_warning() -> None:
+    from structlog.testing import capture_logs  # noqa: PLC0415
+
+    from openral_rskill.anchoring import UnanchoredRows  # noqa: PLC0415
+
+    policy = GatedPolicy(gated=False)
+    with capture_logs() as logs:
+        ex = executor(policy, virtual_delay=lambda _request: 2, anchor=UnanchoredRows())
+    assert any("stale start" in entry["event"] for entry in logs)
+    decisions = [ex.step(t, world(t)) for t in range(3)]
+    assert decisions[2].action is not None
+    assert decisions[2].action.first == [0.0, 0.0]  # row 0 of the chunk observed at tick 0, two ticks late
+    assert ex.stats.rows_skipped == 0

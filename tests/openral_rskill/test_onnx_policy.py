@@ -14,7 +14,7 @@ pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
 
 from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
-from openral_rskill.anchoring import EndEffectorDeltaAnchor  # noqa: E402
+from openral_rskill.anchoring import EndEffectorDeltaAnchor, UnanchoredRows  # noqa: E402
 from openral_rskill.onnx_policy import OnnxPolicySkill  # noqa: E402
 
 ROBOT = RobotManifest(
@@ -113,7 +113,6 @@ def test_delta_ee_rows_are_anchored_where_the_parameters_say(tmp_path: Path) -> 
     [
         ({"model": "missing.onnx", "observation": ["joint_state"]}, "params.model"),
         ({"observation": ["joint_state"], "dt_s": 0.05}, "params.dt_s"),
-        ({"observation": ["joint_state"], "representation": "delta_ee"}, "params.anchor_key"),
     ],
 )
 def test_bad_parameters_name_the_field(tmp_path: Path, params: dict[str, object], field: str) -> None:
@@ -121,6 +120,15 @@ def test_bad_parameters_name_the_field(tmp_path: Path, params: dict[str, object]
     with pytest.raises(ROSConfigError) as caught:
         OnnxPolicySkill.from_config(params, robot=ROBOT, rate_hz=10).action_anchor()
     assert caught.value.field == field
+
+
+def test_delta_rows_without_a_position_to_anchor_at_run_unanchored(tmp_path: Path) -> None:
+    skill = OnnxPolicySkill.from_config(
+        {"model": str(tiny_model(tmp_path / "m.onnx")), "observation": ["joint_state"], "representation": "delta_ee"},
+        robot=ROBOT,
+        rate_hz=10,
+    )
+    assert isinstance(skill.action_anchor(), UnanchoredRows)
 
 
 def test_a_file_that_is_not_a_model_is_a_configuration_error(tmp_path: Path) -> None:
