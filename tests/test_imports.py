@@ -43,6 +43,7 @@ HEAVY = [
         "openral_cli.main",
         "openral_sim.runner",
         "openral_sim.evaluation",
+        "openral_remote.codec",
     ],
 )
 def test_import_loads_no_heavy_library(package: str) -> None:

@@ -1,0 +1,174 @@
+"""The wire format of observations and chunks: named fields, arrays as dtype + shape + bytes, never pickle.
+
+A message is ``b"ORW1"``, a 4-byte little-endian header length, a UTF-8 JSON header, then the
+arrays' bytes back to back. The header names every field: an array (``dtype``, ``shape``, its
+``offset`` and ``nbytes`` in the payload), a JPEG image (for slow links: ``offset``, ``nbytes``), or
+a plain JSON value (numbers, text, lists). Decoding trusts nothing: the magic, the header's size and
+shape, every dtype (numbers and booleans only: object, void and text arrays are refused, so nothing
+can smuggle code or pointers), and that every array lies inside the payload and has exactly the
+bytes its shape needs. Arrays are decoded as read-only views of the message, without a copy.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+from collections.abc import Mapping
+from typing import Any, Final
+
+import numpy as np
+
+from openral_core import ROSRuntimeError
+
+MAGIC: Final = b"ORW1"
+SCHEMA_VERSION: Final = 1
+MAX_HEADER_BYTES: Final = 1 << 20
+MAX_DIMS: Final = 8
+ALLOWED_DTYPES: Final = frozenset(
+    {"bool", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "float16", "float32", "float64"}
+)
+"""Array element types accepted on the wire: numbers and booleans, nothing that can hold an object."""
+
+_PREFIX = struct.Struct("<4sI")
+
+
+class WireFormatError(ROSRuntimeError):
+    """A message that is not a well-formed openral wire message (or asks for what the codec refuses)."""
+
+
+def encode(fields: Mapping[str, Any], *, jpeg: Mapping[str, int] | None = None) -> bytes:
+    """One message holding ``fields``.
+
+    Args:
+        fields: Name → numpy array (numeric or boolean), or a JSON value (number, text, bool,
+            ``None``, lists and mappings of those).
+        jpeg: Name → quality (1–95) of ``uint8`` ``(H, W, 3)`` RGB arrays to send as JPEG instead
+            of raw pixels (smaller, lossy; for slow links).
+
+    Raises:
+        WireFormatError: An array of a refused dtype, or a value JSON cannot carry.
+    """
+    header: dict[str, Any] = {"version": SCHEMA_VERSION, "fields": {}}
+    blobs: list[bytes | memoryview] = []
+    offset = 0
+    for name, value in fields.items():
+        if isinstance(value, np.ndarray):
+            if jpeg is not None and name in jpeg:
+                blob: bytes | memoryview = _jpeg_bytes(name, value, jpeg[name])
+                entry: dict[str, Any] = {"kind": "jpeg", "shape": list(value.shape)}
+            else:
+                dtype = value.dtype.name
+                if dtype not in ALLOWED_DTYPES:
+                    raise WireFormatError(
+                        f"field {name!r}: arrays of {dtype} cannot be sent (numbers and booleans only)"
+                    )
+                array = np.ascontiguousarray(value)
+                blob = array.data.cast("B")
+                entry = {"kind": "array", "dtype": dtype, "shape": list(array.shape)}
+            entry.update(offset=offset, nbytes=len(blob))
+            blobs.append(blob)
+            offset += len(blob)
+        else:
+            entry = {"kind": "value", "value": _plain(name, value)}
+        header["fields"][name] = entry
+    text = json.dumps(header, separators=(",", ":"), allow_nan=True).encode("utf-8")
+    return b"".join([_PREFIX.pack(MAGIC, len(text)), text, *blobs])
+
+
+def decode(message: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """The fields of a message: arrays as read-only views of it, images decoded, values as JSON gave them.
+
+    Raises:
+        WireFormatError: Anything malformed or refused, naming what.
+    """
+    view = memoryview(message).cast("B")
+    if len(view) < _PREFIX.size:
+        raise WireFormatError(f"a message of {len(view)} bytes is shorter than its prefix")
+    magic, header_len = _PREFIX.unpack_from(view)
+    if magic != MAGIC:
+        raise WireFormatError(f"not an openral wire message (magic {bytes(magic)!r})")
+    if header_len > MAX_HEADER_BYTES or _PREFIX.size + header_len > len(view):
+        raise WireFormatError(f"header of {header_len} bytes does not fit the message or the limit")
+    try:
+        header = json.loads(bytes(view[_PREFIX.size : _PREFIX.size + header_len]).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise WireFormatError(f"header is not JSON: {exc}") from None
+    if not isinstance(header, dict) or header.get("version") != SCHEMA_VERSION:
+        raise WireFormatError(
+            f"unsupported message version {header.get('version') if isinstance(header, dict) else None!r}"
+        )
+    entries = header.get("fields")
+    if not isinstance(entries, dict):
+        raise WireFormatError("header has no field table")
+    payload = view[_PREFIX.size + header_len :]
+    return {name: _field(name, entry, payload) for name, entry in entries.items()}
+
+
+def _field(name: str, entry: Any, payload: memoryview) -> Any:
+    if not isinstance(entry, dict):
+        raise WireFormatError(f"field {name!r}: malformed entry")
+    kind = entry.get("kind")
+    if kind == "value":
+        return entry.get("value")
+    blob = _blob(name, entry, payload)
+    shape = entry.get("shape")
+    if not isinstance(shape, list) or len(shape) > MAX_DIMS or not all(isinstance(d, int) and d >= 0 for d in shape):
+        raise WireFormatError(f"field {name!r}: bad shape {shape!r}")
+    if kind == "jpeg":
+        return _from_jpeg(name, blob, shape)
+    if kind != "array":
+        raise WireFormatError(f"field {name!r}: unknown kind {kind!r}")
+    dtype = entry.get("dtype")
+    if dtype not in ALLOWED_DTYPES:
+        raise WireFormatError(f"field {name!r}: dtype {dtype!r} is refused (numbers and booleans only)")
+    itemsize = np.dtype(dtype).itemsize
+    if int(np.prod(shape, dtype=np.int64)) * itemsize != len(blob):
+        raise WireFormatError(f"field {name!r}: {len(blob)} bytes for shape {shape} of {dtype}")
+    array = np.frombuffer(blob, dtype=dtype).reshape(shape)
+    array.flags.writeable = False
+    return array
+
+
+def _blob(name: str, entry: dict[str, Any], payload: memoryview) -> memoryview:
+    offset, nbytes = entry.get("offset"), entry.get("nbytes")
+    if not (isinstance(offset, int) and isinstance(nbytes, int)) or offset < 0 or nbytes < 0:
+        raise WireFormatError(f"field {name!r}: bad offset or size")
+    if offset + nbytes > len(payload):
+        raise WireFormatError(
+            f"field {name!r}: bytes {offset}..{offset + nbytes} lie outside the {len(payload)}-byte payload"
+        )
+    return payload[offset : offset + nbytes]
+
+
+def _plain(name: str, value: Any) -> Any:
+    try:
+        json.dumps(value, allow_nan=True)
+    except (TypeError, ValueError) as exc:
+        raise WireFormatError(f"field {name!r}: {type(value).__name__} is neither an array nor a JSON value") from exc
+    return value
+
+
+def _jpeg_bytes(name: str, image: np.ndarray, quality: int) -> bytes:
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise WireFormatError(f"field {name!r}: JPEG takes uint8 (H, W, 3) RGB images, not {image.dtype} {image.shape}")
+    from PIL import Image  # noqa: PLC0415
+
+    out = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(out, format="JPEG", quality=max(1, min(95, quality)))
+    return out.getvalue()
+
+
+def _from_jpeg(name: str, blob: memoryview, shape: list[int]) -> np.ndarray:
+    from PIL import Image  # noqa: PLC0415
+
+    try:
+        with Image.open(io.BytesIO(bytes(blob))) as image:
+            if image.format != "JPEG":
+                raise WireFormatError(f"field {name!r}: not a JPEG image")
+            pixels = np.asarray(image.convert("RGB"))
+    except OSError as exc:
+        raise WireFormatError(f"field {name!r}: undecodable JPEG ({exc})") from None
+    if list(pixels.shape) != shape:
+        raise WireFormatError(f"field {name!r}: JPEG of {list(pixels.shape)} announced as {shape}")
+    return pixels
