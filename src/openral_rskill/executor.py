@@ -84,7 +84,8 @@ class ExecutorStats:
     rows_skipped: int = 0
     starved_ticks: int = 0
     errors: int = 0
-    delays_ticks: list[int] = field(default_factory=list)
+    delays_ticks: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=1000))
+    """Delays of the most recent chunks used (bounded: a robot runs for days)."""
 
 
 @dataclass

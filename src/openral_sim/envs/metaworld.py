@@ -38,9 +38,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SimEnvironment
 from openral_core.config import validate_model
-from openral_runner.backends.mujoco_render import GL_PACKAGES, OffscreenRenderer, resolve_gl_backend
 from openral_sim.env import EnvSpec, SimObservation, SimStep
-from openral_sim.envs.mujoco_views import check_cameras
+from openral_sim.envs.mujoco_views import MujocoViews, check_cameras
 
 try:
     import mujoco
@@ -109,7 +108,7 @@ class MetaWorldEnv:
             "env_cls": env_class,
             "partially_observable": False,
         }
-        env.set_task(Task(env_name=task, data=pickle.dumps(data)))
+        env.set_task(Task(env_name=task, data=pickle.dumps(data)))  # MetaWorld's own task format, made here
         env._freeze_rand_vec = False
         env.seeded_rand_vec = True
         env.max_path_length = sys.maxsize
@@ -124,7 +123,10 @@ class MetaWorldEnv:
             hold_dims=(3,),
             environment_state_names=_environment_state_names(),
         )
-        self._renderers: dict[tuple[str, int, int], OffscreenRenderer] = {}
+        # Tasks move bodies and sites in the model itself at reset (goal markers, drawers, doors).
+        self._views = MujocoViews(
+            self._env.model, self._env.data, env=f"MetaWorld task {task!r}", gl=self.params.gl, moves_model=True
+        )
 
     @classmethod
     def from_scene(cls, scene: SimEnvironment) -> Self:
@@ -156,52 +158,11 @@ class MetaWorldEnv:
         return SimStep(self._observe(obs, info), reward=float(reward), terminated=bool(terminated), truncated=False)
 
     def render(self, camera: str, width: int, height: int) -> np.ndarray:
-        """An ``(height, width, 3)`` RGB frame of the current state, top row first.
-
-        Raises:
-            ROSConfigError: The OpenGL backend's system library is missing.
-            ROSRuntimeError: No OpenGL context could be created.
-        """
-        model, data = self._env.model, self._env.data
-        key = (camera, width, height)
-        renderer = self._renderers.get(key)
-        if renderer is None:
-            renderer = self._make_renderer(camera, width, height)
-            self._renderers[key] = renderer
-        # Tasks move bodies and sites in the model itself at reset (goal markers, drawers, doors).
-        renderer.model.body_pos[:] = model.body_pos
-        renderer.model.body_quat[:] = model.body_quat
-        renderer.model.site_pos[:] = model.site_pos
-        target = renderer.data
-        target.qpos[:] = data.qpos
-        target.mocap_pos[:] = data.mocap_pos
-        target.mocap_quat[:] = data.mocap_quat
-        return np.ascontiguousarray(renderer.render()[::-1])
+        return self._views.render(camera, width, height)
 
     def close(self) -> None:
-        for renderer in self._renderers.values():
-            renderer.free()
-        self._renderers.clear()
+        self._views.close()
         self._env.close()  # type: ignore[no-untyped-call]
-
-    def _make_renderer(self, camera: str, width: int, height: int) -> OffscreenRenderer:
-        model = self._env.model
-        camera_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
-        if camera_id < 0:
-            check_cameras(model, [camera], env=f"MetaWorld task {self.task!r}")
-        gl = resolve_gl_backend(self.params.gl)
-        try:
-            return OffscreenRenderer(model, camera_id, width, height, gl)
-        except ImportError as exc:
-            raise ROSConfigError(
-                f"camera {camera!r}: {gl} rendering is unavailable: {exc}",
-                field="env_kwargs.gl",
-                hint=f"install the system packages {GL_PACKAGES[gl]}",
-            ) from exc
-        except RuntimeError as exc:
-            raise ROSRuntimeError(
-                f"camera {camera!r}: cannot start {gl} rendering: {exc} (check the packages {GL_PACKAGES[gl]})"
-            ) from exc
 
     def _observe(self, obs: np.ndarray, info: dict[str, Any]) -> SimObservation:
         obs = np.asarray(obs, dtype=np.float64)

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from openral_core import ROSConfigError
-from openral_runner.backends.mujoco_render import OffscreenRenderer, resolve_gl_backend
+from openral_core import ROSConfigError, ROSRuntimeError
+from openral_runner.backends.mujoco_render import GL_PACKAGES, GLBackend, OffscreenRenderer, resolve_gl_backend
 
 try:
     import mujoco
@@ -41,21 +41,42 @@ def check_cameras(model: Any, requested: list[str], *, env: str) -> None:
 
 
 class MujocoViews:
-    """Renders named cameras of ``model`` showing the state of ``data``."""
+    """Renders named cameras of ``model`` showing the state of ``data``.
 
-    def __init__(self, model: Any, data: Any) -> None:
+    Args:
+        model: The simulator's model.
+        data: The simulator's data.
+        env: Names the simulator in errors.
+        gl: OpenGL backend; the process's by default (:func:`resolve_gl_backend`).
+        moves_model: The simulator moves bodies and sites in the model itself (MetaWorld places
+            goals, drawers and doors at reset): their poses are copied before each frame too.
+    """
+
+    def __init__(
+        self, model: Any, data: Any, *, env: str, gl: GLBackend | None = None, moves_model: bool = False
+    ) -> None:
         self.model = model
         self.data = data
+        self.env = env
+        self.gl = gl
+        self.moves_model = moves_model
         self._renderers: dict[tuple[str, int, int], OffscreenRenderer] = {}
 
     def render(self, camera: str, width: int, height: int) -> np.ndarray:
-        """An ``(height, width, 3)`` RGB frame, top row first."""
+        """An ``(height, width, 3)`` RGB frame, top row first.
+
+        Raises:
+            ROSConfigError: No such camera, or the OpenGL backend's system library is missing.
+            ROSRuntimeError: No OpenGL context could be created.
+        """
         key = (camera, width, height)
         renderer = self._renderers.get(key)
         if renderer is None:
-            camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
-            renderer = OffscreenRenderer(self.model, camera_id, width, height, resolve_gl_backend(None))
-            self._renderers[key] = renderer
+            renderer = self._renderers[key] = self._make_renderer(camera, width, height)
+        if self.moves_model:
+            renderer.model.body_pos[:] = self.model.body_pos
+            renderer.model.body_quat[:] = self.model.body_quat
+            renderer.model.site_pos[:] = self.model.site_pos
         target = renderer.data
         target.qpos[:] = self.data.qpos
         if self.model.nmocap:
@@ -67,3 +88,21 @@ class MujocoViews:
         for renderer in self._renderers.values():
             renderer.free()
         self._renderers.clear()
+
+    def _make_renderer(self, camera: str, width: int, height: int) -> OffscreenRenderer:
+        camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+        if camera_id < 0:
+            check_cameras(self.model, [camera], env=self.env)
+        gl = resolve_gl_backend(self.gl)
+        try:
+            return OffscreenRenderer(self.model, camera_id, width, height, gl)
+        except ImportError as exc:
+            raise ROSConfigError(
+                f"camera {camera!r}: {gl} rendering is unavailable: {exc}",
+                field="env_kwargs.gl",
+                hint=f"install the system packages {GL_PACKAGES[gl]}",
+            ) from exc
+        except RuntimeError as exc:
+            raise ROSRuntimeError(
+                f"camera {camera!r}: cannot start {gl} rendering: {exc} (check the packages {GL_PACKAGES[gl]})"
+            ) from exc

@@ -64,7 +64,7 @@ class SO101Env:
             control_hz=1.0 / self._env.control_dt,
             environment_state_names=env_names,
         )
-        self._views = MujocoViews(self._env.model, self._env.data)
+        self._views = MujocoViews(self._env.model, self._env.data, env=task)
 
     @classmethod
     def from_scene(cls, scene: SimEnvironment) -> Self:
