@@ -25,6 +25,7 @@ from openral_cli.recording import (
     replay,
     with_thumbnails,
 )
+from openral_cli.serve import serve
 from openral_cli.session import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.signals import StopSignals
 from openral_cli.sim import benchmark, sim
@@ -374,6 +375,7 @@ cli.add_command(record)
 cli.add_command(replay)
 cli.add_command(sim)
 cli.add_command(benchmark)
+cli.add_command(serve)
 
 
 def main() -> None:

@@ -23,10 +23,11 @@ from typing import Any
 import click
 
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
+from openral_cli.options import json_object
 from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
 from openral_cli.session import command_span
 from openral_cli.signals import StopSignals
-from openral_core import BenchmarkSuite, ROSConfigError, SimEnvironment
+from openral_core import BenchmarkSuite, SimEnvironment
 from openral_core.config_files import resolve_user_path
 
 _PROVENANCE_PACKAGES = (
@@ -40,18 +41,6 @@ _PROVENANCE_PACKAGES = (
     "onnxruntime",
     "ray",
 )
-
-
-def _params(text: str | None, option: str) -> dict[str, Any]:
-    if not text:
-        return {}
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ROSConfigError(f"not valid JSON ({exc.msg} at column {exc.colno})", field=option) from None
-    if not isinstance(value, dict):
-        raise ROSConfigError("must be a JSON object, e.g. '{\"gain\": 2}'", field=option)
-    return value
 
 
 @contextlib.contextmanager
@@ -123,7 +112,7 @@ def sim_run(
         scene = _scene(SimEnvironment.from_yaml(config_path), n_episodes, seed)
         if no_cameras:
             scene = scene.model_copy(update={"cameras": []})
-        params = _params(skill_params, "--skill-params")
+        params = json_object(skill_params, "--skill-params")
         observers = []
         written: list[Any] = []
         if save_video is not None:

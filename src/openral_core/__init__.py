@@ -30,6 +30,7 @@ from openral_core.errors import (
     ROSSkillError,
     ROSStopRequested,
     ROSSyncError,
+    ROSUnavailable,
 )
 from openral_core.execution import ExecutorConfig, FallbackSkill, SeamMode, StarvationFallback, VirtualLatency
 from openral_core.frames import FrameEncoding, SensorFrame
@@ -82,6 +83,7 @@ __all__ = [
     "ROSSkillError",
     "ROSStopRequested",
     "ROSSyncError",
+    "ROSUnavailable",
     "RSkillInfo",
     "RSkillState",
     "RealtimeConfig",

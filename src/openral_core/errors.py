@@ -139,6 +139,13 @@ class ROSSkillError(ROSRuntimeError):
     """A skill failed in a lifecycle transition or in ``step``; its error latch is set."""
 
 
+class ROSUnavailable(ROSRuntimeError):
+    """Something a skill depends on (a remote policy server, its link) cannot answer now; it may come back.
+
+    Raised from ``step`` it does not latch the skill's error: the next step may succeed.
+    """
+
+
 class ROSDeadlineMissed(ROSRuntimeError):
     """A tick missed its deadline under the ``raise`` policy.
 

@@ -49,9 +49,10 @@ class SimEnvironment(BaseModel):
     )
     latency_budget_ms: float | None = Field(default=None, gt=0, description="Steps longer than this are counted.")
     executor: ExecutorConfig = Field(default_factory=ExecutorConfig, description="How chunking skills are executed.")
-    virtual_latency: VirtualLatency = Field(
+    virtual_latency: VirtualLatency | None = Field(
         default_factory=VirtualLatency,
-        description="Ticks from a chunk request to its use: inference is simulated, so results reproduce.",
+        description="Ticks from a chunk request to its use: inference is simulated, so results reproduce. "
+        "null: the real latency (inference on the executor's worker, as on a robot; pace with rate_hz).",
     )
 
     @field_validator("cameras")

@@ -31,3 +31,8 @@ class RSkillInfo(BaseModel):
     control_mode: ControlMode = ControlMode.JOINT_POSITION
     chunk_size: int = Field(default=1, ge=1)
     description: str = ""
+    observation: list[str] = Field(
+        default_factory=list,
+        description="What the skill reads of the world state (joint_state, images.<sensor>, privileged.<name>, "
+        "task); empty when it does not say. A remote client sends only these.",
+    )

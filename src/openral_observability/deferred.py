@@ -153,6 +153,14 @@ class DeferredSpan(Span):
         self.end_ns = _time_ns() if end_time is None else end_time
         self._sink.append(self)
 
+    def end_into(self, sink: list[DeferredSpan] | None, end_time: int | None = None) -> None:
+        """End the span into ``sink`` (a later tick's batch) instead of the one it started in; ``None`` drops it."""
+        if sink is None:
+            self.end_ns = self.end_ns or (_time_ns() if end_time is None else end_time)
+            return
+        self._sink = sink
+        self.end(end_time)
+
     def to_record(self) -> SpanRecord:
         """This finished span as plain data; exceptions become the SDK's ``exception`` event attributes."""
         ctx = self.get_span_context()
@@ -211,6 +219,29 @@ class TickTelemetry:
         """A child span of the tick, or the tick's own span when the tick is not recorded."""
         start = self._start_span
         return self.span if start is None else start(name, attributes)
+
+    def start_lasting_span(self, name: str, attributes: Attributes = None) -> Span:
+        """A child span of the tick that may end during a later tick (a chunk request, say).
+
+        Its context is fixed now, so it can travel (as a ``traceparent``) before it ends. End it
+        with :meth:`end_lasting_span` of the tick it ends in.
+        """
+        if self._start_span is None:
+            return INVALID_SPAN
+        span = self._start_span(name, attributes)
+        if isinstance(span, DeferredSpan):
+            span.get_span_context()
+        return span
+
+    def end_lasting_span(self, span: Span) -> None:
+        """End a span made by :meth:`start_lasting_span` of an earlier tick; it is exported with this tick's batch.
+
+        When this tick is not recorded, a deferred span is dropped (a sampled-out tick exports nothing).
+        """
+        if isinstance(span, DeferredSpan):
+            span.end_into(self.spans if self._start_span is not None and isinstance(self.span, DeferredSpan) else None)
+        else:
+            span.end()
 
     def restart(self) -> None:
         """Move the tick span's start to now, for a tick prepared ahead of its slot."""

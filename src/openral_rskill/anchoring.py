@@ -19,6 +19,7 @@ from enum import StrEnum
 from typing import Protocol
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import WorldState
 
@@ -120,3 +121,49 @@ class EndEffectorDeltaAnchor:
         move = (target[self.dims] - self._position(now)) / self.scale
         command[self.dims] = np.clip(move, -self.limit, self.limit)
         return command
+
+
+class AnchorSpec(BaseModel):
+    """An anchor as data, so a policy served elsewhere is anchored on the robot exactly as it would be locally."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    representation: ActionRepresentation = ActionRepresentation.ABSOLUTE
+    names: list[str] = Field(default_factory=list, description="relative_to_state: the joints offset.")
+    position_key: str | None = Field(default=None, description="delta_ee: the privileged position moved.")
+    scale: float = Field(default=1.0, gt=0, description="delta_ee: metres per unit.")
+    position_dims: list[int] = Field(default_factory=lambda: [0, 1, 2])
+    limit: float = Field(default=1.0, gt=0)
+
+    @classmethod
+    def of(cls, anchor: Anchor) -> AnchorSpec:
+        """The spec of one of the anchors of this module.
+
+        Raises:
+            TypeError: Another kind of anchor (it cannot be described, so it cannot be served).
+        """
+        if isinstance(anchor, StateOffsetAnchor):
+            return cls(representation=ActionRepresentation.RELATIVE_TO_STATE, names=anchor.names)
+        if isinstance(anchor, EndEffectorDeltaAnchor):
+            return cls(
+                representation=ActionRepresentation.DELTA_EE,
+                position_key=anchor.position_key,
+                scale=anchor.scale,
+                position_dims=anchor.dims,
+                limit=anchor.limit,
+            )
+        if isinstance(anchor, UnanchoredRows):
+            return cls(representation=ActionRepresentation.UNANCHORED)
+        if isinstance(anchor, AbsoluteAnchor):
+            return cls()
+        raise TypeError(f"{type(anchor).__name__} cannot be described as data")
+
+    def build(self) -> Anchor:
+        """The anchor this spec describes."""
+        if self.representation is ActionRepresentation.RELATIVE_TO_STATE:
+            return StateOffsetAnchor(self.names)
+        if self.representation is ActionRepresentation.DELTA_EE and self.position_key is not None:
+            return EndEffectorDeltaAnchor(self.position_key, self.scale, self.position_dims, self.limit)
+        if self.representation in (ActionRepresentation.DELTA_EE, ActionRepresentation.UNANCHORED):
+            return UnanchoredRows()
+        return AbsoluteAnchor()

@@ -42,7 +42,7 @@ from pydantic import BaseModel
 
 from openral_core.actions import Action
 from openral_core.config import validate_model
-from openral_core.errors import ROSEStopRequested, ROSSkillError, ROSStopRequested
+from openral_core.errors import ROSEStopRequested, ROSSkillError, ROSStopRequested, ROSUnavailable
 from openral_core.robot import RobotManifest
 from openral_core.skills import RSkillInfo, RSkillState
 from openral_core.world import WorldState
@@ -116,6 +116,10 @@ class RSkillBase(ABC):
     def action_anchor(self) -> Anchor:
         """How a chunking skill's rows become targets (see :mod:`openral_rskill.anchoring`); absolute by default."""
         return AbsoluteAnchor()
+
+    def available(self) -> bool:
+        """Whether the skill can be asked now (a remote policy whose server is down cannot); asked every tick."""
+        return True
 
     def _on_reset(self) -> None:  # noqa: B027 (optional hook)
         """Start a new episode: clear per-episode state (latched poses, chunk queues, step counters)."""
@@ -248,14 +252,15 @@ class RSkillBase(ABC):
             ROSEStopRequested: The skill requested an emergency stop; passed through unchanged and
                 without latching, so the runner stops and calls ``HAL.estop()``.
             ROSStopRequested: The skill ended the run cooperatively; passed through, no latch.
+            ROSUnavailable: Something the skill needs cannot answer now; passed through, no latch.
         """
         if self._state is not _S.ACTIVE:
             raise self._transition_error("step", (_S.ACTIVE,))
         start = perf_counter_ns()
         try:
             action = self._step_impl(world_state)
-        except (ROSEStopRequested, ROSStopRequested):
-            raise  # control flow for the runner, not a skill failure: no latch
+        except (ROSEStopRequested, ROSStopRequested, ROSUnavailable):
+            raise  # control flow for the runner, or a dependency that may come back: no latch
         except Exception as exc:
             raise self._latch("step", exc) from exc
         elapsed = perf_counter_ns() - start

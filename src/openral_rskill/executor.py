@@ -18,7 +18,13 @@ keeps the tick thread from ever waiting on it:
 * **Starvation is explicit**: with no row for this tick the last target is held (counted); after
   ``max_starved_ticks`` in a row the decision is the fallback (a local skill) or a safe stop.
 * **Deadlines, epochs**: a result later than ``deadline_ticks`` after its request is dropped by
-  id; a reset starts a new epoch, and results of an older epoch are dropped.
+  id; a reset starts a new epoch, and results of an older epoch are dropped. A policy whose
+  inference raises ``TimeoutError`` (a remote server past its deadline) is counted late too.
+* **A source that knows it is down** (``available`` returns ``False``: a remote policy's server
+  is gone) is not asked; its buffered rows are dropped and the fallback decides from that very
+  tick, without waiting out the starvation allowance.
+* **One trace**: each request's span starts on the tick that asks (a child of that tick) and ends
+  when the chunk is settled; inference runs under it, so a remote server's span joins the trace.
 
 Virtual latency (a simulation's): with ``virtual_delay`` the policy runs inline when asked and its
 chunk becomes usable exactly ``virtual_delay(request)`` ticks later: the executor's effect on
@@ -37,6 +43,8 @@ from typing import Any, Final
 
 import numpy as np
 import structlog
+from opentelemetry import trace
+from opentelemetry.trace import Span
 
 from openral_core import Action, ControlMode, SeamMode, StarvationFallback, WorldState
 from openral_observability import metrics, semconv, tracer
@@ -83,6 +91,8 @@ class ExecutorStats:
     results_stale_epoch: int = 0
     rows_skipped: int = 0
     starved_ticks: int = 0
+    unavailable_ticks: int = 0
+    """Ticks on which the policy's source said it was down (and the fallback decided)."""
     errors: int = 0
     delays_ticks: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=1000))
     """Delays of the most recent chunks used (bounded: a robot runs for days)."""
@@ -100,6 +110,8 @@ class _Request:
     targets: np.ndarray | None = None
     """The rows anchored at the observation, computed where the rows were (off the tick thread)."""
     error: BaseException | None = None
+    span: Span | None = None
+    """From the request to the chunk's settling; inference runs under it."""
 
 
 def _no_reset() -> None:
@@ -136,6 +148,8 @@ class ChunkedExecutor:
         executed_rows: Use at most the first rows of each chunk (the rest is dropped).
         stale_start: Run each chunk from its first row when it arrives, rows sent as they are
             (no anchoring, no skipping): the naive executor, kept to measure what indexing by tick gains.
+        available: Whether the policy's source can be asked now (a remote server's liveliness);
+            ``None``: always. Called once per tick on the tick thread, so it must be O(1).
     """
 
     def __init__(
@@ -160,6 +174,7 @@ class ChunkedExecutor:
         control_mode: ControlMode = ControlMode.JOINT_POSITION,
         executed_rows: int | None = None,
         stale_start: bool = False,
+        available: Callable[[], bool] | None = None,
     ) -> None:
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
@@ -182,6 +197,7 @@ class ChunkedExecutor:
         self.control_mode = control_mode
         self.executed_rows = executed_rows
         self.stale_start = stale_start or isinstance(self.anchor, UnanchoredRows)
+        self._available = available
         if isinstance(self.anchor, UnanchoredRows) and not stale_start:
             _log.warning(
                 "the policy's rows cannot be anchored at their observation: each chunk runs from its first row "
@@ -225,6 +241,8 @@ class ChunkedExecutor:
         """
         self._telemetry = telemetry
         self._take_arrivals(tick_idx)
+        if self._available is not None and not self._available():
+            return self._unavailable(world)
         self._maybe_request(tick_idx, world)
         if self.virtual_delay is not None and self._done:
             self._take_arrivals(tick_idx)  # a virtual delay of 0: this tick's own chunk
@@ -240,6 +258,22 @@ class ChunkedExecutor:
         self._count(semconv.METRIC_EXECUTOR_STARVED_TICKS)
         if self._starved_in_row > self.max_starved_ticks and self.fallback is not StarvationFallback.HOLD:
             return Decision(Outcome.FALLBACK if self.fallback is StarvationFallback.SKILL else Outcome.STOP)
+        return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
+
+    def _unavailable(self, world: WorldState) -> Decision:
+        """The source is down: its rows are dropped and the fallback decides now."""
+        self._targets = self._targets[:0]
+        self._ensemble = []
+        self.stats.unavailable_ticks += 1
+        self._count(semconv.METRIC_EXECUTOR_UNAVAILABLE_TICKS)
+        # Past the starvation allowance: once the source is back, the fallback acts until a row arrives.
+        self._starved_in_row = self.max_starved_ticks + 1
+        if self.fallback is StarvationFallback.SKILL:
+            return Decision(Outcome.FALLBACK)
+        if self.fallback is StarvationFallback.STOP:
+            return Decision(Outcome.STOP)
+        if self._held is None:
+            return Decision(Outcome.NONE)
         return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
 
     def reset(self, run: Callable[[], None] | None = None) -> None:
@@ -304,14 +338,17 @@ class ChunkedExecutor:
         self._next_id += 1
         self._in_flight = request
         self.stats.requests += 1
+        attributes = {semconv.ATTR_EXECUTOR_REQUEST_ID: request.request_id, semconv.ATTR_EXECUTOR_OBS_TICK: tick_idx}
+        telemetry = self._telemetry
+        request.span = (
+            telemetry.start_lasting_span(semconv.SPAN_EXECUTOR_CHUNK, attributes)
+            if telemetry is not None
+            else tracer().start_span(semconv.SPAN_EXECUTOR_CHUNK, attributes=attributes)
+        )
         if self.virtual_delay is not None:
             index_in_epoch = request.request_id - self._epoch_first_id
             request.ready_tick = tick_idx + max(0, int(self.virtual_delay(index_in_epoch)))
-            try:
-                self._prepare(request, self._infer(world))
-            except Exception as exc:
-                request.error = exc
-            self._done.append(request)
+            self._run(request)
             return
         with self._wake:
             self._jobs.append(request)
@@ -369,20 +406,20 @@ class ChunkedExecutor:
         self._chunk_span(request, tick_idx, outcome)
 
     def _chunk_span(self, request: _Request, tick_idx: int, outcome: dict[str, Any]) -> None:
-        """The request's span and metrics, recorded when it is settled (used, discarded or given up on)."""
+        """End the request's span and record its metrics when it is settled (used, discarded or given up on)."""
         delay = tick_idx - request.obs_tick
-        attributes: dict[str, Any] = {
-            semconv.ATTR_EXECUTOR_REQUEST_ID: request.request_id,
-            semconv.ATTR_EXECUTOR_OBS_TICK: request.obs_tick,
-            semconv.ATTR_EXECUTOR_READY_TICK: tick_idx,
-            semconv.ATTR_EXECUTOR_DELAY_TICKS: delay,
-            **outcome,
-        }
-        telemetry = self._telemetry
-        span = telemetry.start_span(semconv.SPAN_EXECUTOR_CHUNK, attributes) if telemetry else None
-        if span is None:
-            span = tracer().start_span(semconv.SPAN_EXECUTOR_CHUNK, attributes=attributes)
-        span.end()
+        span = request.span
+        if span is not None:
+            request.span = None
+            span.set_attributes({semconv.ATTR_EXECUTOR_READY_TICK: tick_idx, semconv.ATTR_EXECUTOR_DELAY_TICKS: delay})
+            span.set_attributes(outcome)
+            if outcome.get(semconv.ATTR_EXECUTOR_DISCARDED) in ("error", "late") and request.error is not None:
+                span.record_exception(request.error)
+            telemetry = self._telemetry
+            if telemetry is not None:
+                telemetry.end_lasting_span(span)
+            else:
+                span.end()
         reason = outcome.get(semconv.ATTR_EXECUTOR_DISCARDED)
         if reason is None:
             self._record(semconv.METRIC_EXECUTOR_DELAY, float(delay))
@@ -401,6 +438,9 @@ class ChunkedExecutor:
         if request.epoch != self._epoch:
             self.stats.results_stale_epoch += 1
             return "stale_epoch"
+        if isinstance(request.error, TimeoutError):
+            self.stats.results_late += 1
+            return "late"
         if request.error is not None:
             self.stats.errors += 1
             _log.warning("chunk inference failed", error=str(request.error), request=request.request_id)
@@ -494,8 +534,16 @@ class ChunkedExecutor:
                     _log.warning("policy reset failed", error=str(exc))
                 continue
             assert isinstance(job, _Request)
-            try:
-                self._prepare(job, self._infer(job.world))
-            except Exception as exc:
-                job.error = exc
-            self._done.append(job)  # deque.append is atomic: the tick thread takes it on its next step
+            self._run(job)
+
+    def _run(self, request: _Request) -> None:
+        """Infer under the request's span (so spans the policy makes, a remote server's too, are its children)."""
+        try:
+            if request.span is None:
+                self._prepare(request, self._infer(request.world))
+            else:
+                with trace.use_span(request.span, record_exception=False, set_status_on_exception=False):
+                    self._prepare(request, self._infer(request.world))
+        except Exception as exc:
+            request.error = exc
+        self._done.append(request)  # deque.append is atomic: the tick thread takes it on its next step

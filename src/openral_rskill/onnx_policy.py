@@ -117,6 +117,7 @@ class OnnxPolicySkill(RSkillBase):
             else ControlMode.JOINT_POSITION,
             chunk_size=self.chunk_size,
             description=metadata.get("description", ""),
+            observation=self.observation_fields,
         )
         self._mean = None if params.obs_mean is None else np.asarray(params.obs_mean, dtype=np.float32)
         self._std = None if params.obs_std is None else np.asarray(params.obs_std, dtype=np.float32)

@@ -151,6 +151,7 @@ class SkillRunnerBase(InferenceRunnerBase):
                 "results_stale_epoch": stats.results_stale_epoch,
                 "rows_skipped": stats.rows_skipped,
                 "starved_ticks": stats.starved_ticks,
+                "unavailable_ticks": stats.unavailable_ticks,
                 "errors": stats.errors,
             }
         return super()._build_run_result(n_ticks, stop_reason)
@@ -181,7 +182,7 @@ class SkillRunnerBase(InferenceRunnerBase):
             return None, WithheldReason.AWAITING_CHUNK
         if outcome is Outcome.FALLBACK and self.fallback_skill is not None:
             return self._step_phase(self.fallback_skill, world, tick_idx)
-        _log.error("the chunking policy is starved; stopping", tick=tick_idx)
+        _log.error("the chunking policy has no action (starved, or its source is down); stopping", tick=tick_idx)
         self.request_stop(StopReason.FAULTS)
         return None, WithheldReason.STARVED
 
@@ -289,6 +290,7 @@ def _executor_for(
         fallback=config.fallback,
         executed_rows=config.executed_rows,
         stale_start=config.indexing == "stale_start",
+        available=skill.available,
         virtual_delay=virtual_delay,
         skill_id=skill.info.skill_id,
         control_mode=skill.info.control_mode,

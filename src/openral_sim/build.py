@@ -37,6 +37,14 @@ def build_sim_runner(
         skill: RSkillBase = skill_class.from_config(
             dict(skill_params or {}), robot=manifest, rate_hz=env.spec.control_hz
         )
+        fallback = scene.executor.fallback_skill
+        if fallback is not None:
+            runner_kwargs.setdefault(
+                "fallback_skill",
+                SKILL_REGISTRY.resolve(fallback.id, field="executor.fallback_skill.id").from_config(
+                    fallback.params, robot=manifest, rate_hz=env.spec.control_hz
+                ),
+            )
         return SimRunner(
             env=env, scene=scene, skill=skill, first_episode=first_episode, n_episodes=n_episodes, **runner_kwargs
         )

@@ -79,7 +79,7 @@ class SimRunner(SkillRunnerBase):
             task=scene.task,
             executor=scene.executor,
             action_names=list(env.spec.action_names),
-            virtual_delay=scene.virtual_latency.sampler(scene.seed),
+            virtual_delay=None if scene.virtual_latency is None else scene.virtual_latency.sampler(scene.seed),
             **base_kwargs,
         )
         self.env = env
@@ -138,7 +138,7 @@ class SimRunner(SkillRunnerBase):
         index = self.first_episode + len(self.episode_results)
         seed = self.scene.seed + index
         observation = self.env.reset(seed)
-        if self.executor is not None:
+        if self.executor is not None and self.scene.virtual_latency is not None:
             self.executor.virtual_delay = self.scene.virtual_latency.sampler(seed)
         self._reset_skill(seed)
         t1 = now()

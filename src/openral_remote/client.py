@@ -1,0 +1,339 @@
+"""``RemotePolicyClient``: asks a policy server for chunks, with a deadline, and knows when it is gone.
+
+Outcomes of a request, each its own exception so the executor can count it:
+
+* a chunk;
+* **no reply at all**: nobody serves the key (the server died): :class:`ServerUnavailable`, and
+  the server is marked down until its liveliness token returns;
+* Zenoh's ``Timeout`` error at the deadline (a hung server): :class:`RemoteTimeout`, a
+  ``TimeoutError`` (the executor counts it late);
+* ``superseded``: a newer request of ours overtook it: :class:`RemoteSuperseded`.
+
+A liveliness subscriber marks the server down the moment its token is withdrawn (a clean
+shutdown, a SIGKILL noticed by the kernel, or a silent link after the lease), without waiting for
+a request to fail. When the token comes back, ``meta`` is fetched again on a thread of its own: a
+server that returns with another model (a different hash or shape) is refused, and stays down,
+unless ``on_model_change`` is ``accept`` and the shapes still fit.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import threading
+import time
+import uuid
+from typing import Any, Literal
+
+import numpy as np
+import structlog
+import zenoh  # after session: a missing extra is reported there, naming it
+from zenoh import shm
+
+from openral_core import ROSConfigError, ROSUnavailable, WorldState
+from openral_observability import metrics, semconv, tracer
+from openral_observability.propagation import inject
+from openral_remote.codec import decode, encode
+from openral_remote.config import ZenohConfig
+from openral_remote.keys import PolicyKeys
+from openral_remote.meta import PolicyMeta
+from openral_remote.observation import world_fields
+from openral_remote.server import ERROR_SUPERSEDED
+from openral_remote.session import open_session
+
+_log = structlog.get_logger(__name__)
+
+_SHM_POOL_BYTES = 32 << 20
+SHAPE_FIELDS = frozenset({"chunk_size", "action_names", "control_mode", "anchor", "dt_s", "schema_version"})
+"""Meta fields a running robot cannot take a change of, whatever ``on_model_change`` says."""
+
+
+class ServerUnavailable(ROSUnavailable):
+    """No policy server answers (none is alive, or a request got no reply)."""
+
+
+class RemoteTimeout(ROSUnavailable, TimeoutError):
+    """The server did not answer before the request's deadline."""
+
+
+class RemoteSuperseded(ROSUnavailable):
+    """The server dropped the request for a newer one of this client."""
+
+
+class RemotePolicyClient:
+    """One robot's link to one served policy.
+
+    Args:
+        keys: Where the policy is served.
+        zenoh: The session's settings (the server's endpoint in ``connect``).
+        deadline_ms: A request without a reply by then fails with :class:`RemoteTimeout`.
+        on_model_change: ``refuse`` (default) or ``accept`` a server that returns with another model.
+        jpeg_quality: Send RGB/BGR camera images as JPEG of this quality; raw when ``None``.
+    """
+
+    def __init__(
+        self,
+        keys: PolicyKeys,
+        zenoh: ZenohConfig,
+        *,
+        deadline_ms: float = 500.0,
+        on_model_change: Literal["refuse", "accept"] = "refuse",
+        jpeg_quality: int | None = None,
+    ) -> None:
+        self.keys = keys
+        self.zenoh = zenoh
+        self.deadline_s = deadline_ms / 1e3
+        self.on_model_change = on_model_change
+        self.jpeg_quality = jpeg_quality
+        self.client_id = uuid.uuid4().hex[:16]
+        self.meta: PolicyMeta | None = None
+        self.changes: list[str] = []
+        """Down and up events, in order (``down``, ``up``, ``refused``): what happened to the link."""
+        self._up = False
+        self._alive = threading.Event()
+        self._seq = itertools.count()
+        self._session: Any = None
+        self._querier: Any = None
+        self._liveliness: Any = None
+        self._shm: Any = None
+        self._lock = threading.Lock()
+        self._generation = 0
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    def connect(self, timeout_s: float) -> PolicyMeta:
+        """Open the session, wait up to ``timeout_s`` for the server to be alive, and read its ``meta``.
+
+        Raises:
+            ServerUnavailable: No server became alive in time, or it did not answer ``meta``.
+        """
+        self._session = open_session(self.zenoh)
+        try:
+            self._querier = self._session.declare_querier(
+                self.keys.infer, timeout=self.deadline_s, consolidation=zenoh.ConsolidationMode.NONE
+            )
+            self._liveliness = self._session.liveliness().declare_subscriber(
+                self.keys.alive, self._on_liveliness, history=True
+            )
+            if not self._alive.wait(timeout_s):
+                raise ServerUnavailable(
+                    f"no policy server is alive at {self.keys.prefix} (connect {self.zenoh.connect}) "
+                    f"after {timeout_s:g} s; start one with 'openral serve'"
+                )
+            self.meta = self.fetch_meta(timeout_s)
+            self._up = self._alive.is_set()
+            if self.zenoh.shared_memory:
+                self._shm = _shm_provider()
+        except BaseException:
+            self.close()
+            raise
+        return self.meta
+
+    def close(self) -> None:
+        """Undeclare everything and close the session. Idempotent."""
+        self._up = False
+        for declared in (self._liveliness, self._querier):
+            if declared is not None:
+                declared.undeclare()
+        self._liveliness = self._querier = None
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def available(self) -> bool:
+        """Whether the server is up (alive, with the expected model): O(1), read every tick."""
+        return self._up
+
+    # -- requests --------------------------------------------------------------------------
+
+    def fetch_meta(self, timeout_s: float) -> PolicyMeta:
+        """The server's ``meta`` now.
+
+        Raises:
+            ServerUnavailable: No reply, or not a ``PolicyMeta``.
+        """
+        for reply in self._session.get(self.keys.meta, timeout=timeout_s):
+            if reply.ok is not None:
+                try:
+                    return PolicyMeta.from_bytes(reply.ok.payload.to_bytes())
+                except ValueError as exc:
+                    raise ServerUnavailable(
+                        f"{self.keys.meta} answered something that is not policy meta: {exc}"
+                    ) from None
+        raise ServerUnavailable(f"no answer on {self.keys.meta}")
+
+    def infer(self, world: WorldState) -> np.ndarray:
+        """The chunk the server computes from ``world``: ``(rows, dims)`` float64.
+
+        Raises:
+            ServerUnavailable: The server is down, or nobody answered (it is then marked down).
+            RemoteTimeout: No answer before the deadline.
+            RemoteSuperseded: The server dropped it for a newer request.
+            ROSUnavailable: The server answered with another error (its policy failed).
+        """
+        if not self._up:
+            raise ServerUnavailable(f"the policy server at {self.keys.prefix} is down")
+        meta = self.meta
+        assert meta is not None
+        fields, jpeg = world_fields(world, meta.observation, jpeg_quality=self.jpeg_quality)
+        payload = encode(fields, jpeg=jpeg)
+        started = time.perf_counter()
+        with tracer().start_as_current_span(
+            semconv.SPAN_REMOTE_REQUEST,
+            attributes={semconv.ATTR_REMOTE_KEY: self.keys.infer, semconv.ATTR_REMOTE_REQUEST_BYTES: len(payload)},
+        ) as span:
+            attachment: dict[str, Any] = {"client": self.client_id, "seq": next(self._seq)}
+            inject(attachment)
+            try:
+                rows, reply_bytes = self._round_trip(payload, json.dumps(attachment).encode("utf-8"))
+            except ROSUnavailable as exc:
+                outcome = _outcome(exc)
+                span.set_attribute(semconv.ATTR_REMOTE_OUTCOME, outcome)
+                metrics.add(semconv.METRIC_REMOTE_FAILURES, 1, {semconv.ATTR_REMOTE_OUTCOME: outcome})
+                raise
+            span.set_attributes({semconv.ATTR_REMOTE_OUTCOME: "ok", semconv.ATTR_REMOTE_REPLY_BYTES: reply_bytes})
+        metrics.histogram(semconv.METRIC_REMOTE_ROUND_TRIP).record((time.perf_counter() - started) * 1e3)
+        return rows
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode on the server (waits for it, at most the deadline)."""
+        if not self._up:
+            raise ServerUnavailable(f"the policy server at {self.keys.prefix} is down")
+        body = json.dumps({"seed": seed}).encode("utf-8")
+        for reply in self._session.get(self.keys.reset, payload=body, timeout=self.deadline_s):
+            if reply.ok is not None:
+                return
+            raise _error(reply.err.payload.to_bytes().decode("utf-8", "replace"), self.keys.reset)
+        raise ServerUnavailable(f"no answer on {self.keys.reset}")
+
+    def _round_trip(self, payload: bytes, attachment: bytes) -> tuple[np.ndarray, int]:
+        replies = self._querier.get(payload=self._shared(payload), attachment=attachment)
+        for reply in replies:
+            if reply.ok is None:
+                raise _error(reply.err.payload.to_bytes().decode("utf-8", "replace"), self.keys.infer)
+            data = reply.ok.payload.to_bytes()
+            chunk = decode(data).get("chunk")
+            if not isinstance(chunk, np.ndarray) or chunk.ndim != 2:
+                raise ROSUnavailable(f"{self.keys.infer} answered without a chunk")
+            return np.asarray(chunk, dtype=np.float64), len(data)
+        self._mark_down("no reply")
+        raise ServerUnavailable(f"nobody answered on {self.keys.infer}: the policy server is gone")
+
+    def _shared(self, payload: bytes) -> Any:
+        """The payload in shared memory when a pool is there (same-host peers read it in place)."""
+        provider = self._shm
+        if provider is None:
+            return payload
+        try:
+            buffer = provider.alloc(len(payload), shm.GarbageCollect())
+        except Exception:  # pool exhausted or unsupported: plain bytes work everywhere
+            return payload
+        buffer[:] = payload
+        return zenoh.ZBytes(buffer)
+
+    # -- liveliness ------------------------------------------------------------------------
+
+    def _on_liveliness(self, sample: Any) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._alive.set()
+            if self.meta is not None and not self._up:
+                with self._lock:
+                    self._generation += 1
+                    generation = self._generation
+                threading.Thread(target=self._recheck, args=(generation,), daemon=True).start()
+        else:
+            self._alive.clear()
+            self._mark_down("token withdrawn")
+
+    def _mark_down(self, why: str) -> None:
+        with self._lock:
+            was_up, self._up = self._up, False
+            self._generation += 1
+        if was_up:
+            self._change("down")
+            _log.warning("policy server down", key=self.keys.prefix, why=why)
+
+    def _recheck(self, generation: int) -> None:
+        """The server is alive again: take it back only if it serves what we expect."""
+        try:
+            meta = self.fetch_meta(max(self.deadline_s, 1.0))
+        except ROSUnavailable as exc:
+            _log.warning("policy server back but its meta is unreadable; staying down", error=str(exc))
+            return
+        expected = self.meta
+        assert expected is not None
+        changed = expected.differences(meta)
+        refuse = bool(SHAPE_FIELDS.intersection(changed)) or (changed and self.on_model_change == "refuse")
+        with self._lock:
+            if generation != self._generation or not self._alive.is_set():
+                return  # went down again meanwhile
+            if refuse:
+                self._change("refused")
+                _log.error(
+                    "policy server came back with another model; refused (the fallback stays in charge)",
+                    key=self.keys.prefix,
+                    differs=changed,
+                    model_hash=meta.model_hash[:12],
+                )
+                return
+            if changed:
+                self.meta = meta
+            self._up = True
+        self._change("up")
+        _log.info("policy server up", key=self.keys.prefix, model_hash=meta.model_hash[:12])
+
+    def _change(self, what: str) -> None:
+        self.changes.append(what)
+        metrics.add(semconv.METRIC_REMOTE_SERVER_CHANGES, 1, {semconv.ATTR_REMOTE_OUTCOME: what})
+
+
+def _error(text: str, key: str) -> ROSUnavailable:
+    if text.startswith(ERROR_SUPERSEDED):
+        return RemoteSuperseded(f"{key}: superseded by a newer request")
+    if "timeout" in text.lower():
+        return RemoteTimeout(f"{key}: no answer before the deadline")
+    return ROSUnavailable(f"{key}: the server answered with an error: {text}")
+
+
+def _outcome(exc: ROSUnavailable) -> str:
+    if isinstance(exc, RemoteTimeout):
+        return "timeout"
+    if isinstance(exc, RemoteSuperseded):
+        return "superseded"
+    if isinstance(exc, ServerUnavailable):
+        return "unavailable"
+    return "error"
+
+
+def _shm_provider() -> Any:
+    try:
+        return shm.ShmProvider.default_backend(_SHM_POOL_BYTES)
+    except Exception as exc:  # no /dev/shm, or not allowed: plain bytes
+        _log.info("no shared memory for requests", error=str(exc))
+        return None
+
+
+def check_compatible(meta: PolicyMeta, *, action_dims: int | None, rate_hz: float, field: str) -> None:
+    """Refuse a served policy this robot cannot run (chunk size, action size, step period).
+
+    Raises:
+        ROSConfigError: Naming what does not fit.
+    """
+    if meta.chunk_size < 2:
+        raise ROSConfigError(
+            f"{meta.policy} returns one row per request; a row cannot arrive in time for its own tick",
+            field=field,
+            hint="serve a policy that returns chunks (chunk size above 1)",
+        )
+    if action_dims is not None and len(meta.action_names) != action_dims:
+        raise ROSConfigError(
+            f"{meta.policy} acts on {len(meta.action_names)} dimensions {meta.action_names}, "
+            f"this robot on {action_dims}",
+            field=field,
+        )
+    if abs(meta.dt_s * rate_hz - 1.0) > 1e-6:
+        raise ROSConfigError(
+            f"{meta.policy} steps every {meta.dt_s:g} s but the loop ticks at {rate_hz:g} Hz",
+            field=field,
+            hint="run the loop at the policy's rate, or serve it with --rate-hz matching the robot",
+        )

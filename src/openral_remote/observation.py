@@ -1,0 +1,154 @@
+"""A world state as wire fields and back: what a remote policy sees is what a local one would.
+
+Fields: ``stamp_ns``, ``task``, ``joint.names`` / ``joint.positions`` / ``joint.velocities``,
+``ee_pose``, ``image.<sensor>`` (the pixels, raw or JPEG) with ``image.<sensor>.meta``, and
+``privileged.<name>``. A policy that says what it reads (``RSkillInfo.observation``: ``joint_state``,
+``images`` or ``images.<sensor>``, ``privileged`` or ``privileged.<name>``, ``task``, ``ee_pose``)
+is sent only that: a joint-space policy never costs the link a camera image.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from openral_core import FrameEncoding, JointState, Pose6D, PrivilegedState, SensorFrame, WorldState
+from openral_remote.codec import WireFormatError
+
+_COMPRESSED = frozenset({FrameEncoding.JPEG, FrameEncoding.PNG})
+
+
+class _Selection:
+    """Which parts of the world state go on the wire."""
+
+    def __init__(self, fields: Sequence[str]) -> None:
+        wanted = set(fields)
+        self.everything = not wanted
+        self.joints = self.everything or "joint_state" in wanted
+        self.task = self.everything or "task" in wanted
+        self.ee_pose = self.everything or "ee_pose" in wanted
+        self.all_images = self.everything or "images" in wanted
+        self.images = {name.removeprefix("images.") for name in wanted if name.startswith("images.")}
+        self.all_privileged = self.everything or "privileged" in wanted
+        self.privileged = {name.removeprefix("privileged.") for name in wanted if name.startswith("privileged.")}
+
+    def image(self, sensor_id: str) -> bool:
+        return self.all_images or sensor_id in self.images
+
+    def value(self, name: str) -> bool:
+        return self.all_privileged or name in self.privileged
+
+
+def world_fields(
+    world: WorldState, observation: Sequence[str] = (), *, jpeg_quality: int | None = None
+) -> tuple[dict[str, Any], dict[str, int]]:
+    """The wire fields of ``world`` (only those ``observation`` names, all when empty), and the JPEG map.
+
+    Returns:
+        ``(fields, jpeg)``, as :func:`openral_remote.codec.encode` takes them.
+    """
+    selection = _Selection(observation)
+    fields: dict[str, Any] = {"stamp_ns": world.stamp_ns}
+    jpeg: dict[str, int] = {}
+    if selection.task:
+        fields["task"] = world.task
+    joints = world.joint_state
+    if selection.joints and joints is not None:
+        fields["joint.names"] = list(joints.names)
+        fields["joint.positions"] = np.asarray(joints.positions, dtype=np.float64)
+        fields["joint.stamp_ns"] = joints.stamp_ns
+        if joints.velocities is not None:
+            fields["joint.velocities"] = np.asarray(joints.velocities, dtype=np.float64)
+    if selection.ee_pose and world.ee_pose is not None:
+        fields["ee_pose"] = world.ee_pose.model_dump()
+    for sensor_id, frame in (world.image_frames or {}).items():
+        if selection.image(sensor_id) and frame.data is not None:
+            _put_frame(fields, jpeg, frame, jpeg_quality)
+    if world.privileged is not None:
+        for name, values in world.privileged.values.items():
+            if selection.value(name):
+                fields[f"privileged.{name}"] = np.asarray(values, dtype=np.float64)
+    return fields, jpeg
+
+
+def _put_frame(fields: dict[str, Any], jpeg: dict[str, int], frame: SensorFrame, quality: int | None) -> None:
+    key = f"image.{frame.sensor_id}"
+    encoding = frame.encoding
+    if encoding in _COMPRESSED:
+        assert frame.data is not None
+        pixels = np.frombuffer(frame.data, dtype=np.uint8)
+    else:
+        pixels = frame.as_array()
+        if quality is not None and encoding in (FrameEncoding.RGB8, FrameEncoding.BGR8):
+            if encoding is FrameEncoding.BGR8:
+                pixels = pixels[..., ::-1]
+                encoding = FrameEncoding.RGB8
+            jpeg[key] = quality
+    fields[key] = pixels
+    fields[f"{key}.meta"] = {
+        "encoding": encoding.value,
+        "width": frame.width,
+        "height": frame.height,
+        "stamp_ns": frame.stamp_ns,
+        "seq": frame.seq,
+        "frame_id": frame.frame_id,
+    }
+
+
+def world_from_fields(fields: Mapping[str, Any]) -> WorldState:
+    """The world state a message carries.
+
+    Raises:
+        WireFormatError: A field of the wrong type, or an image whose description does not fit it.
+    """
+    try:
+        return _world(fields)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise WireFormatError(f"not an observation: {exc}") from None
+
+
+def _world(fields: Mapping[str, Any]) -> WorldState:
+    joint_state = None
+    if "joint.positions" in fields:
+        velocities = fields.get("joint.velocities")
+        joint_state = JointState(
+            names=list(fields["joint.names"]),
+            positions=_array(fields["joint.positions"]).tolist(),
+            velocities=None if velocities is None else _array(velocities).tolist(),
+            stamp_ns=int(fields.get("joint.stamp_ns", 0)),
+        )
+    frames: dict[str, SensorFrame] = {}
+    privileged: dict[str, list[float]] = {}
+    for name, value in fields.items():
+        if name.startswith("image.") and not name.endswith(".meta"):
+            sensor_id = name.removeprefix("image.")
+            meta = fields[f"{name}.meta"]
+            frames[sensor_id] = SensorFrame(
+                sensor_id=sensor_id,
+                stamp_ns=int(meta["stamp_ns"]),
+                width=int(meta["width"]),
+                height=int(meta["height"]),
+                encoding=FrameEncoding(meta["encoding"]),
+                seq=int(meta["seq"]),
+                frame_id=meta.get("frame_id"),
+                data=_array(value),
+            )
+        elif name.startswith("privileged."):
+            privileged[name.removeprefix("privileged.")] = _array(value).tolist()
+    pose = fields.get("ee_pose")
+    return WorldState(
+        stamp_ns=int(fields["stamp_ns"]),
+        task=fields.get("task"),
+        joint_state=joint_state,
+        ee_pose=None if pose is None else Pose6D.model_validate(pose),
+        image_frames=frames or None,
+        privileged=PrivilegedState(values=privileged) if privileged else None,
+    )
+
+
+def _array(value: Any) -> np.ndarray:
+    if not isinstance(value, np.ndarray):
+        raise TypeError(f"expected an array, got {type(value).__name__}")
+    return value

@@ -1,0 +1,109 @@
+"""``remote_policy``: a chunking policy that runs on another machine, served by ``openral serve``.
+
+On the robot it is a skill like any other: its chunk size, action names, representation (so its
+rows are anchored as they would be locally) and observation come from the server's ``meta``, read
+once when the skill is built (the server must be up by then, within ``connect_timeout_s``). The
+chunk executor calls :meth:`step` on its worker thread, never on the tick; while the server is
+down (:meth:`available` is ``False``) the executor's fallback acts: ``hold``, a local ``skill``
+(e.g. an ONNX policy) or a safe ``stop``, configured under ``executor:``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Self
+
+from openral_core import Action, RobotManifest, ROSConfigError, RSkillInfo, WorldState
+from openral_remote.client import SHAPE_FIELDS, RemotePolicyClient, check_compatible
+from openral_remote.config import RemotePolicyParams
+from openral_remote.keys import PolicyKeys
+from openral_remote.meta import PolicyMeta
+from openral_rskill.anchoring import Anchor
+from openral_rskill.base import RSkillBase, validate_params
+
+SKILL_ID = "remote_policy"
+
+
+class RemotePolicySkill(RSkillBase):
+    """Asks a policy server for each chunk.
+
+    Args:
+        robot: This robot (its id names the key unless ``params.robot`` does; its joints must
+            match the policy's action dimensions).
+        params: Which server, the deadline, what a changed model means.
+        rate_hz: The loop's rate; must match the policy's step.
+    """
+
+    def __init__(self, robot: RobotManifest, params: RemotePolicyParams, *, rate_hz: float) -> None:
+        super().__init__()
+        self.params = params
+        self.keys = PolicyKeys.of(params.robot or robot.robot_id, params.policy)
+        self.client = self._new_client()
+        try:  # what the policy is decides how the runner is built: ask now, then let go until configure
+            self.meta: PolicyMeta = self.client.connect(params.connect_timeout_s)
+        finally:
+            self.client.close()
+        check_compatible(self.meta, action_dims=len(robot.joint_names), rate_hz=rate_hz, field="params.policy")
+        self._info = RSkillInfo(
+            skill_id=SKILL_ID,
+            name=f"{self.meta.policy} served at {self.keys.prefix}",
+            version=self.meta.skill_version,
+            control_mode=self.meta.control_mode,
+            chunk_size=self.meta.chunk_size,
+            description=f"{self.meta.skill_id} on a policy server (model {self.meta.model_hash[:12]})",
+            observation=self.meta.observation,
+        )
+
+    @classmethod
+    def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> Self:
+        return cls(robot, validate_params(RemotePolicyParams, params, skill_id=SKILL_ID), rate_hz=rate_hz)
+
+    @property
+    def info(self) -> RSkillInfo:
+        return self._info
+
+    def action_anchor(self) -> Anchor:
+        """The anchor the served skill would use locally."""
+        return self.meta.anchor.build()
+
+    def available(self) -> bool:
+        return self.client.available()
+
+    def _new_client(self) -> RemotePolicyClient:
+        params = self.params
+        return RemotePolicyClient(
+            self.keys,
+            params.zenoh,
+            deadline_ms=params.deadline_ms,
+            on_model_change=params.on_model_change,
+            jpeg_quality=params.jpeg_quality,
+        )
+
+    def _on_configure(self) -> None:
+        self.client = self._new_client()
+        meta = self.client.connect(self.params.connect_timeout_s)
+        changed = self.meta.differences(meta)
+        if changed and (self.params.on_model_change == "refuse" or SHAPE_FIELDS.intersection(changed)):
+            self.client.close()
+            raise ROSConfigError(
+                f"the policy server's {', '.join(changed)} changed between build and start",
+                field="params.on_model_change",
+            )
+        self.client.meta = self.meta  # a later return is judged against the policy the runner was built for
+
+    def _on_shutdown(self) -> None:
+        self.client.close()
+
+    def _on_reset(self) -> None:
+        if self.client.available():
+            self.client.reset(self.episode_seed)
+
+    def _step_impl(self, world_state: WorldState) -> Action:
+        rows = self.client.infer(world_state)
+        return Action(
+            control_mode=self.meta.control_mode,
+            joint_names=self.meta.action_names,
+            targets=rows.tolist(),
+            stamp_ns=world_state.stamp_ns,
+            skill_id=SKILL_ID,
+        )

@@ -1,0 +1,125 @@
+"""A policy server for tests, speaking the real protocol: run it as a child process and kill it as you like.
+
+``python -m openral_remote.testing --listen tcp/127.0.0.1:PORT [--delay-ms D] [--offset X]`` serves
+:class:`ChunkSkill` on the real Zenoh keys until SIGINT/SIGTERM (or SIGKILL, which is the point).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from openral_core import Action, RSkillInfo, WorldState
+from openral_remote.config import ZenohConfig
+from openral_remote.keys import PolicyKeys
+from openral_remote.meta import PolicyMeta
+from openral_rskill.anchoring import AnchorSpec
+from openral_rskill.base import RSkillBase
+
+ROBOT = "test_robot"
+POLICY = "chunks"
+
+
+class ChunkSkill(RSkillBase):
+    """Row ``j`` of a chunk is ``base + offset + j * step``: ``base`` the observed joints (zeros without).
+
+    Args:
+        action_names: The action's dimensions.
+        chunk_size: Rows per chunk.
+        offset: Added to every row (two "models" differ by it).
+        step: Added per row.
+        delay_s: Time each inference takes (a GPU's, or a hang when long).
+    """
+
+    def __init__(
+        self,
+        action_names: Sequence[str],
+        *,
+        chunk_size: int = 10,
+        offset: float = 0.5,
+        step: float = 0.01,
+        delay_s: float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.action_names = list(action_names)
+        self.chunk_size = chunk_size
+        self.offset = offset
+        self.step_size = step
+        self.delay_s = delay_s
+        self.seeds: list[int | None] = []
+        self._info = RSkillInfo(skill_id="chunk_test", chunk_size=chunk_size, observation=["joint_state"])
+
+    @property
+    def info(self) -> RSkillInfo:
+        return self._info
+
+    def rows(self, world: WorldState) -> np.ndarray:
+        """The chunk for ``world`` (what a client must receive)."""
+        base = np.zeros(len(self.action_names))
+        joints = world.joint_state
+        if joints is not None and len(joints.positions) == len(base):
+            base = np.asarray(joints.positions, dtype=np.float64)
+        steps = self.step_size * np.arange(self.chunk_size)[:, None]
+        return np.asarray(base + self.offset + steps)
+
+    def _on_reset(self) -> None:
+        self.seeds.append(self.episode_seed)
+
+    def _step_impl(self, world_state: WorldState) -> Action:
+        if self.delay_s:
+            time.sleep(self.delay_s)
+        return Action(joint_names=self.action_names, targets=self.rows(world_state).tolist())
+
+
+def chunk_meta(skill: ChunkSkill, *, rate_hz: float, model_hash: str) -> PolicyMeta:
+    """The meta a server of ``skill`` publishes."""
+    return PolicyMeta(
+        policy=POLICY,
+        robot=ROBOT,
+        skill_id=skill.info.skill_id,
+        chunk_size=skill.chunk_size,
+        action_names=skill.action_names,
+        control_mode=skill.info.control_mode,
+        anchor=AnchorSpec(),
+        dt_s=1.0 / rate_hz,
+        observation=list(skill.info.observation),
+        model_hash=model_hash,
+    )
+
+
+def serve(args: Any) -> None:
+    """Serve a :class:`ChunkSkill` until SIGINT or SIGTERM."""
+    from openral_remote.server import PolicyServer  # noqa: PLC0415 (Zenoh: loaded where it is used)
+
+    names = [f"a{i}" for i in range(args.dims)]
+    skill = ChunkSkill(names, chunk_size=args.chunk_size, offset=args.offset, delay_s=args.delay_ms / 1e3)
+    meta = chunk_meta(skill, rate_hz=args.rate_hz, model_hash=args.model_hash)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    zenoh = ZenohConfig(listen=[args.listen], lease_ms=args.lease_ms)
+    with PolicyServer(skill, keys=PolicyKeys.of(ROBOT, POLICY), zenoh=zenoh, meta=meta):
+        stop.wait()
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--listen", required=True)
+    parser.add_argument("--dims", type=int, default=2)
+    parser.add_argument("--chunk-size", type=int, default=10)
+    parser.add_argument("--offset", type=float, default=0.5)
+    parser.add_argument("--delay-ms", type=float, default=0.0)
+    parser.add_argument("--rate-hz", type=float, default=10.0)
+    parser.add_argument("--model-hash", default="model-a")
+    parser.add_argument("--lease-ms", type=int, default=1000)
+    serve(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from openral_remote.config import ZenohConfig
+from openral_remote.keys import PolicyKeys
+from openral_remote.testing import POLICY, ROBOT
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+class ServerProcess:
+    """A policy server (``python -m openral_remote.testing``) in a child process."""
+
+    def __init__(self, endpoint: str, args: list[str]) -> None:
+        self.endpoint = endpoint
+        self.args = args
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> "ServerProcess":
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "openral_remote.testing", "--listen", self.endpoint, *self.args],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        return self
+
+    def kill(self) -> None:
+        assert self.proc is not None
+        os.kill(self.proc.pid, signal.SIGKILL)
+        self.stderr = self._reap()
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+        self.stderr = self._reap()
+
+    def _reap(self) -> str:
+        """Wait for the process to end and return what it wrote on stderr (the pipe is closed)."""
+        if self.proc is None or self.proc.stderr is None:
+            return ""
+        try:
+            _out, err = self.proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            _out, err = self.proc.communicate(timeout=10)
+        return err.decode("utf-8", "replace")
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def server(endpoint: str) -> Iterator[Callable[..., ServerProcess]]:
+    started: list[ServerProcess] = []
+
+    def start(*args: str) -> ServerProcess:
+        process = ServerProcess(endpoint, list(args)).start()
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        process.stop()
+
+
+@pytest.fixture
+def keys() -> PolicyKeys:
+    return PolicyKeys.of(ROBOT, POLICY)
+
+
+@pytest.fixture
+def client_zenoh(endpoint: str) -> ZenohConfig:
+    return ZenohConfig(connect=[endpoint])

@@ -1,0 +1,147 @@
+"""Loopback: a policy server in a child process, a client here; killed, hung, superseded, swapped."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from openral_core import JointState, WorldState
+from openral_remote.client import RemotePolicyClient, RemoteSuperseded, RemoteTimeout, ServerUnavailable
+from openral_remote.testing import ChunkSkill
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _world(q=(0.1, -0.2)) -> WorldState:
+    return WorldState(stamp_ns=1, joint_state=JointState(names=["a0", "a1"], positions=list(q)))
+
+
+def _wait_for(condition, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.005)
+    return condition()
+
+
+@pytest.fixture
+def client(keys, client_zenoh):
+    made = []
+
+    def connect(deadline_ms: float = 1000.0, **kwargs) -> RemotePolicyClient:
+        remote = RemotePolicyClient(keys, client_zenoh, deadline_ms=deadline_ms, **kwargs)
+        remote.connect(timeout_s=20.0)
+        made.append(remote)
+        return remote
+
+    yield connect
+    for remote in made:
+        remote.close()
+
+
+def test_a_round_trip_returns_the_chunk_the_policy_computes(server, client):
+    server("--chunk-size", "8", "--offset", "0.25")
+    remote = client()
+    assert remote.meta is not None
+    assert remote.meta.chunk_size == 8
+    world = _world()
+    expected = ChunkSkill(["a0", "a1"], chunk_size=8, offset=0.25).rows(world)
+    np.testing.assert_array_equal(remote.infer(world), expected)
+    remote.reset(seed=7)  # answered once the server's worker ran it
+
+
+def test_connect_without_a_server_says_how_to_start_one(keys, client_zenoh):
+    remote = RemotePolicyClient(keys, client_zenoh)
+    with pytest.raises(ServerUnavailable, match="openral serve"):
+        remote.connect(timeout_s=0.3)
+
+
+def test_a_killed_server_is_known_down_without_a_request_and_a_request_fails_fast(server, client):
+    process = server()
+    remote = client()
+    remote.infer(_world())
+    process.kill()
+    assert _wait_for(lambda: not remote.available(), timeout_s=3.0)  # liveliness, not a failed request
+    assert remote.changes == ["down"]
+    started = time.perf_counter()
+    with pytest.raises(ServerUnavailable):
+        remote.infer(_world())
+    assert time.perf_counter() - started < 0.5
+
+
+def test_a_hung_server_costs_the_deadline_and_is_counted_late(server, client):
+    server("--delay-ms", "3000")
+    remote = client(deadline_ms=200)
+    started = time.perf_counter()
+    with pytest.raises(RemoteTimeout) as caught:
+        remote.infer(_world())
+    elapsed = time.perf_counter() - started
+    assert isinstance(caught.value, TimeoutError)  # what the executor counts as late
+    assert 0.15 < elapsed < 2.0
+    assert remote.available()  # hung is not dead: the token is still there
+
+
+def test_a_request_overtaken_by_a_newer_one_is_answered_at_once(server, client):
+    server("--delay-ms", "600")
+    remote = client(deadline_ms=5000)
+    outcomes: dict[str, object] = {}
+
+    def ask(name: str) -> None:
+        started = time.perf_counter()
+        try:
+            remote.infer(_world())
+            outcomes[name] = ("chunk", time.perf_counter() - started)
+        except Exception as exc:
+            outcomes[name] = (exc, time.perf_counter() - started)
+
+    first = threading.Thread(target=ask, args=("first",))
+    first.start()
+    time.sleep(0.2)  # the first is being inferred (600 ms)
+    second = threading.Thread(target=ask, args=("second",))
+    second.start()
+    time.sleep(0.1)  # the second waits behind it
+    ask("third")
+    first.join()
+    second.join()
+    result, elapsed = outcomes["second"]
+    assert isinstance(result, RemoteSuperseded)
+    assert elapsed < 0.3  # answered when the third came, not after the first's inference
+    assert outcomes["first"][0] == "chunk"
+    assert outcomes["third"][0] == "chunk"
+
+
+def test_a_server_back_with_another_model_is_refused(server, client):
+    process = server("--model-hash", "model-a")
+    remote = client()
+    process.kill()
+    assert _wait_for(lambda: not remote.available(), timeout_s=3.0)
+    server("--model-hash", "model-b")
+    assert _wait_for(lambda: remote.changes[-1:] == ["refused"], timeout_s=20.0)
+    assert not remote.available()
+    with pytest.raises(ServerUnavailable):
+        remote.infer(_world())
+
+
+def test_a_server_back_with_the_same_model_is_taken_back(server, client):
+    process = server("--model-hash", "model-a")
+    remote = client()
+    process.kill()
+    assert _wait_for(lambda: not remote.available(), timeout_s=3.0)
+    server("--model-hash", "model-a")
+    assert _wait_for(remote.available, timeout_s=20.0)
+    assert remote.changes == ["down", "up"]
+    assert remote.infer(_world()).shape == (10, 2)
+
+
+def test_accepting_a_new_model_takes_it(server, client):
+    process = server("--model-hash", "model-a")
+    remote = client(on_model_change="accept")
+    process.kill()
+    assert _wait_for(lambda: not remote.available(), timeout_s=3.0)
+    server("--model-hash", "model-b", "--offset", "2.0")
+    assert _wait_for(remote.available, timeout_s=20.0)
+    assert remote.meta is not None
+    assert remote.meta.model_hash == "model-b"
+    assert remote.infer(_world())[0, 0] == pytest.approx(0.1 + 2.0)
