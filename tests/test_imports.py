@@ -66,7 +66,7 @@ def test_the_check_itself_detects_a_heavy_import() -> None:
 BLOCKER = """
 import importlib.abc, importlib.metadata, json, sys
 
-BLOCKED = {"mujoco", "cv2", "gi", "onnxruntime"}
+BLOCKED = {"mujoco", "cv2", "gi", "onnxruntime", "zenoh"}
 
 
 class Blocker(importlib.abc.MetaPathFinder):
@@ -99,6 +99,7 @@ NEEDS_A_HEAVY_LIBRARY = {
     "openral.sensor_backends:gstreamer": ("gi", "gstreamer"),
     "openral.skills:metaworld_expert": ("mujoco", "sim"),
     "openral.skills:onnx_policy": ("onnxruntime", "policy"),
+    "openral.skills:remote_policy": ("zenoh", "remote"),
     "openral.sim_envs:so101": ("mujoco", "twin"),
     "openral.sim_envs:metaworld": ("mujoco", "twin"),
     "openral.sim_envs:pusht": ("cv2", "opencv"),

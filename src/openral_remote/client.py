@@ -27,10 +27,8 @@ from typing import Any, Literal
 
 import numpy as np
 import structlog
-import zenoh  # after session: a missing extra is reported there, naming it
-from zenoh import shm
 
-from openral_core import ROSConfigError, ROSUnavailable, WorldState
+from openral_core import ROSConfigError, ROSDependencyMissing, ROSUnavailable, WorldState
 from openral_observability import metrics, semconv, tracer
 from openral_observability.propagation import inject
 from openral_remote.codec import decode, encode
@@ -40,6 +38,12 @@ from openral_remote.meta import PolicyMeta
 from openral_remote.observation import world_fields
 from openral_remote.server import ERROR_SUPERSEDED
 from openral_remote.session import open_session
+
+try:
+    import zenoh
+    from zenoh import shm
+except ImportError as exc:
+    raise ROSDependencyMissing("zenoh", extra="remote", needed_for="remote inference over Zenoh") from exc
 
 _log = structlog.get_logger(__name__)
 
@@ -109,9 +113,7 @@ class RemotePolicyClient:
         """
         self._session = open_session(self.zenoh)
         try:
-            self._querier = self._session.declare_querier(
-                self.keys.infer, timeout=self.deadline_s, consolidation=zenoh.ConsolidationMode.NONE
-            )
+            self._querier = self._session.declare_querier(self.keys.infer, timeout=self.deadline_s)
             self._liveliness = self._session.liveliness().declare_subscriber(
                 self.keys.alive, self._on_liveliness, history=True
             )
@@ -152,7 +154,10 @@ class RemotePolicyClient:
         Raises:
             ServerUnavailable: No reply, or not a ``PolicyMeta``.
         """
-        for reply in self._session.get(self.keys.meta, timeout=timeout_s):
+        session = self._session
+        if session is None:
+            raise ServerUnavailable("the client is closed")
+        for reply in session.get(self.keys.meta, timeout=timeout_s):
             if reply.ok is not None:
                 try:
                     return PolicyMeta.from_bytes(reply.ok.payload.to_bytes())
@@ -176,11 +181,13 @@ class RemotePolicyClient:
         meta = self.meta
         assert meta is not None
         fields, jpeg = world_fields(world, meta.observation, jpeg_quality=self.jpeg_quality)
-        payload = encode(fields, jpeg=jpeg)
+        message = encode(fields, jpeg=jpeg)
+        payload = self._shared(message)
+        size = len(message)
         started = time.perf_counter()
         with tracer().start_as_current_span(
             semconv.SPAN_REMOTE_REQUEST,
-            attributes={semconv.ATTR_REMOTE_KEY: self.keys.infer, semconv.ATTR_REMOTE_REQUEST_BYTES: len(payload)},
+            attributes={semconv.ATTR_REMOTE_KEY: self.keys.infer, semconv.ATTR_REMOTE_REQUEST_BYTES: size},
         ) as span:
             attachment: dict[str, Any] = {"client": self.client_id, "seq": next(self._seq)}
             inject(attachment)
@@ -206,29 +213,38 @@ class RemotePolicyClient:
             raise _error(reply.err.payload.to_bytes().decode("utf-8", "replace"), self.keys.reset)
         raise ServerUnavailable(f"no answer on {self.keys.reset}")
 
-    def _round_trip(self, payload: bytes, attachment: bytes) -> tuple[np.ndarray, int]:
-        replies = self._querier.get(payload=self._shared(payload), attachment=attachment)
+    def _round_trip(self, payload: Any, attachment: bytes) -> tuple[np.ndarray, int]:
+        replies = self._querier.get(payload=payload, attachment=attachment)
         for reply in replies:
             if reply.ok is None:
                 raise _error(reply.err.payload.to_bytes().decode("utf-8", "replace"), self.keys.infer)
             data = reply.ok.payload.to_bytes()
-            chunk = decode(data).get("chunk")
+            fields = decode(data)
+            chunk = fields.get("chunk")
             if not isinstance(chunk, np.ndarray) or chunk.ndim != 2:
                 raise ROSUnavailable(f"{self.keys.infer} answered without a chunk")
+            meta = self.meta
+            if meta is not None and fields.get("model_hash") != meta.model_hash:
+                # Another model behind the same key without the server going away: judged as a return.
+                self._mark_down("the model changed")
+                self._start_recheck()
+                raise ServerUnavailable(f"{self.keys.infer} answered from another model; checking its meta")
             return np.asarray(chunk, dtype=np.float64), len(data)
         self._mark_down("no reply")
+        if self._alive.is_set():  # its token is still there: ask for its meta rather than wait for a change
+            self._start_recheck()
         raise ServerUnavailable(f"nobody answered on {self.keys.infer}: the policy server is gone")
 
-    def _shared(self, payload: bytes) -> Any:
-        """The payload in shared memory when a pool is there (same-host peers read it in place)."""
+    def _shared(self, message: bytes) -> Any:
+        """The message in shared memory when a pool is there (same-host peers then read it in place)."""
         provider = self._shm
         if provider is None:
-            return payload
+            return message
         try:
-            buffer = provider.alloc(len(payload), shm.GarbageCollect())
+            buffer = provider.alloc(len(message), shm.GarbageCollect())
         except Exception:  # pool exhausted or unsupported: plain bytes work everywhere
-            return payload
-        buffer[:] = payload
+            return message
+        buffer[:] = message  # ZShmMut takes bytes only (no buffer protocol): one copy
         return zenoh.ZBytes(buffer)
 
     # -- liveliness ------------------------------------------------------------------------
@@ -237,13 +253,17 @@ class RemotePolicyClient:
         if sample.kind == zenoh.SampleKind.PUT:
             self._alive.set()
             if self.meta is not None and not self._up:
-                with self._lock:
-                    self._generation += 1
-                    generation = self._generation
-                threading.Thread(target=self._recheck, args=(generation,), daemon=True).start()
+                self._start_recheck()
         else:
             self._alive.clear()
             self._mark_down("token withdrawn")
+
+    def _start_recheck(self) -> None:
+        """Read ``meta`` again on a thread of its own (never on Zenoh's callback thread)."""
+        with self._lock:
+            self._generation += 1
+            generation = self._generation
+        threading.Thread(target=self._recheck, args=(generation,), name="openral-remote-recheck", daemon=True).start()
 
     def _mark_down(self, why: str) -> None:
         with self._lock:
@@ -254,12 +274,20 @@ class RemotePolicyClient:
             _log.warning("policy server down", key=self.keys.prefix, why=why)
 
     def _recheck(self, generation: int) -> None:
-        """The server is alive again: take it back only if it serves what we expect."""
-        try:
-            meta = self.fetch_meta(max(self.deadline_s, 1.0))
-        except ROSUnavailable as exc:
-            _log.warning("policy server back but its meta is unreadable; staying down", error=str(exc))
-            return
+        """The server is alive again: take it back only if it serves what we expect.
+
+        Its ``meta`` is asked for until it answers, as long as its token stays and nothing newer
+        happened (another return, another loss).
+        """
+        while True:
+            try:
+                meta = self.fetch_meta(max(self.deadline_s, 1.0))
+                break
+            except ROSUnavailable as exc:
+                _log.warning("policy server alive but its meta is unreadable; asking again", error=str(exc))
+            if self._session is None or generation != self._generation or not self._alive.wait(0.5):
+                return
+            time.sleep(0.5)
         expected = self.meta
         assert expected is not None
         changed = expected.differences(meta)

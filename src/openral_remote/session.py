@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import json
 from typing import Any
 
@@ -25,14 +28,40 @@ def zenoh_config(config: ZenohConfig) -> Any:
     return settings
 
 
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+
+
+@functools.cache
+def keep_message_memory() -> bool:
+    """Keep freed large buffers in the process (glibc) instead of returning them to the kernel after each message.
+
+    A camera observation is about a megabyte. By default glibc serves such a block with a fresh
+    ``mmap`` (or trims a thread arena's top) and gives it back on free, so every message pays
+    a few hundred page faults on both ends (measured here: 1.2 ms of a 6 ms round trip). Raising
+    the mmap and trim thresholds, as real-time guides advise, makes the blocks reused. Once per
+    process; ``False`` where the C library is not glibc.
+    """
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, 64 << 20)) and bool(mallopt(_M_TRIM_THRESHOLD, 256 << 20))
+
+
 def open_session(config: ZenohConfig) -> Any:
-    """An open Zenoh session.
+    """An open Zenoh session (and, once per process, :func:`keep_message_memory`).
 
     Raises:
         ROSConfigError: Zenoh refused the settings, or cannot listen on an endpoint (in use, not local).
         ROSRuntimeError: The session could not be opened for another reason.
     """
     settings = zenoh_config(config)
+    keep_message_memory()
     try:
         return zenoh.open(settings)
     except Exception as exc:

@@ -35,6 +35,7 @@ class ChunkSkill(RSkillBase):
         offset: Added to every row (two "models" differ by it).
         step: Added per row.
         delay_s: Time each inference takes (a GPU's, or a hang when long).
+        observation: What it says it reads (the client sends only that; empty: everything).
     """
 
     def __init__(
@@ -45,6 +46,7 @@ class ChunkSkill(RSkillBase):
         offset: float = 0.5,
         step: float = 0.01,
         delay_s: float = 0.0,
+        observation: Sequence[str] = ("joint_state",),
     ) -> None:
         super().__init__()
         self.action_names = list(action_names)
@@ -53,7 +55,7 @@ class ChunkSkill(RSkillBase):
         self.step_size = step
         self.delay_s = delay_s
         self.seeds: list[int | None] = []
-        self._info = RSkillInfo(skill_id="chunk_test", chunk_size=chunk_size, observation=["joint_state"])
+        self._info = RSkillInfo(skill_id="chunk_test", chunk_size=chunk_size, observation=list(observation))
 
     @property
     def info(self) -> RSkillInfo:
@@ -98,7 +100,13 @@ def serve(args: Any) -> None:
     from openral_remote.server import PolicyServer  # noqa: PLC0415 (Zenoh: loaded where it is used)
 
     names = [f"a{i}" for i in range(args.dims)]
-    skill = ChunkSkill(names, chunk_size=args.chunk_size, offset=args.offset, delay_s=args.delay_ms / 1e3)
+    skill = ChunkSkill(
+        names,
+        chunk_size=args.chunk_size,
+        offset=args.offset,
+        delay_s=args.delay_ms / 1e3,
+        observation=[] if args.observation == ["all"] else args.observation,
+    )
     meta = chunk_meta(skill, rate_hz=args.rate_hz, model_hash=args.model_hash)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -118,6 +126,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--rate-hz", type=float, default=10.0)
     parser.add_argument("--model-hash", default="model-a")
     parser.add_argument("--lease-ms", type=int, default=1000)
+    parser.add_argument("--observation", nargs="+", default=["joint_state"], help="Fields read; 'all' for all.")
     serve(parser.parse_args(argv))
 
 

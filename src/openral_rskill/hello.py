@@ -51,6 +51,9 @@ class HelloParams(BaseModel):
         gripper: ``hold`` keeps gripper joints at their start value; ``wave`` moves them too.
         max_speed_fraction: Largest commanded speed as a fraction of each joint's velocity limit.
         limit_margin: Distance kept from each joint limit (joint units).
+        chunk_size: Rows per step. Above 1 the skill is a chunking policy (run by the chunk
+            executor, or served remotely): row ``j`` is the wave ``j`` ticks after the observation,
+            timed by the observation's stamp rather than by counting steps.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
@@ -63,6 +66,7 @@ class HelloParams(BaseModel):
     gripper: Literal["hold", "wave"] = "hold"
     max_speed_fraction: float = Field(default=0.5, gt=0.0, le=1.0)
     limit_margin: float = Field(default=0.05, ge=0.0)
+    chunk_size: int = Field(default=1, ge=1, le=1000)
 
 
 class HelloSkill(RSkillBase):
@@ -113,6 +117,14 @@ class HelloSkill(RSkillBase):
         self._centre: list[float] | None = None
         self._amplitudes: list[float] = [0.0] * len(self._names)
         self._k = 0
+        self._first_stamp_ns: int | None = None
+        self._info = self.INFO.model_copy(update={"chunk_size": self.params.chunk_size})
+
+    def _row(self, centre: list[float], t: float) -> list[float]:
+        ramp = _ramp(t, self._ramp_s)
+        wt = self._omega * t
+        sin = math.sin
+        return [c + a * ramp * sin(wt + p) for c, a, p in zip(centre, self._amplitudes, self._phases, strict=True)]
 
     @classmethod
     def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> Self:
@@ -121,8 +133,8 @@ class HelloSkill(RSkillBase):
 
     @property
     def info(self) -> RSkillInfo:
-        """Identity of the ``hello`` skill."""
-        return self.INFO
+        """Identity of the ``hello`` skill (its chunk size from the parameters)."""
+        return self._info
 
     @property
     def start_pose(self) -> list[float] | None:
@@ -144,6 +156,7 @@ class HelloSkill(RSkillBase):
         self._centre = None
         self._amplitudes = [0.0] * len(self._names)
         self._k = 0
+        self._first_stamp_ns = None
 
     def _latch_centre(self, world_state: WorldState) -> list[float]:
         centre = clamp_to_limits(measured_pose(world_state, self._names), self.robot)
@@ -165,24 +178,30 @@ class HelloSkill(RSkillBase):
 
     def _step_impl(self, world_state: WorldState) -> Action:
         centre = self._centre if self._centre is not None else self._latch_centre(world_state)
-        k = self._k
-        self._k = k + 1
-        t = k / self.rate_hz
-        if t < self._ramp_s:
-            s = t / self._ramp_s
-            ramp = s * s * s * (s * (6.0 * s - 15.0) + 10.0)
-        else:
-            ramp = 1.0
-        wt = self._omega * t
-        sin = math.sin
-        row = [c + a * ramp * sin(wt + p) for c, a, p in zip(centre, self._amplitudes, self._phases, strict=True)]
+        if self.params.chunk_size == 1:
+            k = self._k
+            self._k = k + 1
+            rows = [self._row(centre, k / self.rate_hz)]
+        else:  # a chunk: timed by the observation, row j for j ticks later
+            if self._first_stamp_ns is None:
+                self._first_stamp_ns = world_state.stamp_ns
+            t0 = (world_state.stamp_ns - self._first_stamp_ns) / 1e9
+            rows = [self._row(centre, t0 + j / self.rate_hz) for j in range(self.params.chunk_size)]
         return Action(
             control_mode=ControlMode.JOINT_POSITION,
             joint_names=self._names,
-            targets=[row],
+            targets=rows,
             stamp_ns=world_state.stamp_ns,
             skill_id=SKILL_ID,
         )
+
+
+def _ramp(t: float, ramp_s: float) -> float:
+    """0 → 1 over ``ramp_s`` with zero slope and curvature at both ends (smootherstep)."""
+    if t >= ramp_s:
+        return 1.0
+    s = max(0.0, t) / ramp_s
+    return s * s * s * (s * (6.0 * s - 15.0) + 10.0)
 
 
 def _moving_joints(robot: RobotManifest, params: HelloParams) -> list[str]:

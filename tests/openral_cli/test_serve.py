@@ -118,3 +118,61 @@ def test_a_served_policy_gives_the_robot_what_the_local_one_would_in_one_trace(s
         if names[:3] == [semconv.SPAN_REMOTE_REQUEST, semconv.SPAN_EXECUTOR_CHUNK, semconv.SPAN_TICK]:
             chains += 1
     assert chains >= 1, "no server inference span under a robot tick"
+
+
+def test_the_shipped_remote_deployment_runs_the_twin_on_a_served_chunking_policy(tmp_path: Path):
+    import yaml  # noqa: PLC0415
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    deployment = yaml.safe_load((ROOT / "deployments" / "so101_twin_remote.yaml").read_text(encoding="utf-8"))
+    deployment["vla"]["params"]["zenoh"]["connect"] = [endpoint]
+    path = tmp_path / "remote.yaml"
+    path.write_text(yaml.safe_dump(deployment), encoding="utf-8")
+    server = subprocess.Popen(
+        _openral(
+            "serve",
+            "--skill",
+            "hello",
+            "--skill-params",
+            '{"chunk_size": 15}',
+            "--robot",
+            "so101_follower",
+            "--name",
+            deployment["vla"]["params"]["policy"],
+            "--listen",
+            endpoint,
+        ),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        done = subprocess.run(
+            _openral("deploy", "--config", str(path), "--max-ticks", "90", "--json"),
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+    finally:
+        server.send_signal(signal.SIGINT)
+        server.communicate(timeout=60)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result["stop_reason"] == "max_ticks"
+    executor = result["metadata"]["executor"]
+    assert executor["chunks_used"] >= 3
+    assert executor["unavailable_ticks"] == 0
+
+
+def test_a_wrong_remote_setting_names_the_field(tmp_path: Path):
+    import yaml  # noqa: PLC0415
+
+    deployment = yaml.safe_load((ROOT / "deployments" / "so101_twin_remote.yaml").read_text(encoding="utf-8"))
+    deployment["vla"]["params"]["zenoh"]["lease"] = 1000  # lease_ms is the key
+    path = tmp_path / "remote.yaml"
+    path.write_text(yaml.safe_dump(deployment), encoding="utf-8")
+    done = subprocess.run(_openral("validate", str(path)), capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 2
+    assert "zenoh.lease" in done.stderr
+    assert "lease_ms" in done.stderr

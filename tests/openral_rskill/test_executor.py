@@ -270,3 +270,82 @@ def test_rows_that_cannot_be_anchored_start_stale_with_a_warning() -> None:
     assert decisions[2].action is not None
     assert decisions[2].action.first == [0.0, 0.0]  # row 0 of the chunk observed at tick 0, two ticks late
     assert ex.stats.rows_skipped == 0
+
+
+def test_a_request_span_is_a_child_of_the_asking_tick_and_inference_runs_under_it(telemetry) -> None:
+    from opentelemetry import trace  # noqa: PLC0415
+
+    from openral_observability import semconv, tracer  # noqa: PLC0415
+
+    seen: list[int] = []
+
+    def infer(observed: WorldState) -> np.ndarray:
+        seen.append(trace.get_current_span().get_span_context().span_id)
+        return np.zeros((4, 2))
+
+    ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=4)
+    try:
+        with tracer().start_as_current_span("tick") as tick:
+            ex.step(0, world(0))
+        wait_for(lambda: ex.results_waiting == 1)
+        ex.step(1, world(1))
+    finally:
+        ex.close()
+    (span,) = telemetry.spans(semconv.SPAN_EXECUTOR_CHUNK)
+    assert span.parent is not None
+    assert span.parent.span_id == tick.get_span_context().span_id
+    assert seen == [span.context.span_id]  # a remote client injects this span as the server's parent
+    assert span.attributes[semconv.ATTR_EXECUTOR_READY_TICK] == 1
+
+
+def test_a_source_that_is_down_is_not_asked_and_the_fallback_decides_at_once() -> None:
+    policy = GatedPolicy(rows=6, gated=False)
+    up = [True]
+    ex = executor(
+        policy,
+        virtual_delay=lambda _request: 0,
+        available=lambda: up[0],
+        fallback=StarvationFallback.SKILL,
+        max_starved_ticks=5,
+    )
+    assert ex.step(0, world(0)).outcome is Outcome.ACTION
+    assert ex.rows_left == 6
+    up[0] = False
+    asked = len(policy.calls)
+    decisions = [ex.step(t, world(t)).outcome for t in range(1, 4)]
+    assert decisions == [Outcome.FALLBACK] * 3  # the buffered rows are not played from a dead source
+    assert len(policy.calls) == asked
+    assert ex.stats.unavailable_ticks == 3
+    up[0] = True
+    assert ex.step(4, world(4)).outcome is Outcome.ACTION  # a new chunk at once (virtual delay 0)
+    assert policy.calls[-1] == "infer@4"
+
+
+def test_after_the_source_returns_the_fallback_acts_until_a_chunk_arrives() -> None:
+    policy = GatedPolicy(rows=3, gated=False)
+    up = [True]
+    ex = executor(
+        policy,
+        virtual_delay=lambda request: 0 if request == 0 else 2,
+        available=lambda: up[0],
+        fallback=StarvationFallback.SKILL,
+        max_starved_ticks=5,
+    )
+    assert ex.step(0, world(0)).outcome is Outcome.ACTION
+    up[0] = False
+    assert ex.step(1, world(1)).outcome is Outcome.FALLBACK
+    up[0] = True
+    # Asked again at tick 2, usable at tick 4: never the stale target of before the outage meanwhile.
+    assert [ex.step(t, world(t)).outcome for t in (2, 3)] == [Outcome.FALLBACK, Outcome.FALLBACK]
+    assert ex.step(4, world(4)).outcome is Outcome.ACTION
+
+
+def test_a_policy_that_times_out_is_counted_late_not_failed() -> None:
+    def infer(observed: WorldState) -> np.ndarray:
+        raise TimeoutError("no reply before the deadline")
+
+    ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=4, virtual_delay=lambda _request: 0)
+    for tick in range(3):
+        assert ex.step(tick, world(tick)).outcome is Outcome.NONE
+    assert ex.stats.results_late == 3
+    assert ex.stats.errors == 0

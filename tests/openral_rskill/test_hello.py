@@ -296,3 +296,17 @@ def test_never_leaves_the_limits_never_jumps_and_starts_at_the_start_pose(
         assert worst <= bound * (1 + 1e-9) + 1e-12, spec.name
         if spec.kind is JointKind.GRIPPER and params.gripper == "hold":
             assert all(row[j] == clamped[j] for row in rows)
+
+
+def test_a_chunk_holds_the_wave_of_the_ticks_after_its_observation(robot: RobotManifest, make_world: MakeWorld) -> None:
+    per_tick = run(hello(robot), make_world(robot.joint_names, START), 60)
+    chunked = hello(robot, chunk_size=10)
+    assert chunked.info.chunk_size == 10
+    chunked.configure()
+    chunked.activate()
+    period_ns = round(1e9 / RATE)
+    for tick in (0, 7, 35):  # observations at ticks 0, 7 and 35 of the episode (stamps are what count)
+        action = chunked.step(make_world(robot.joint_names, START, stamp_ns=1_000 + tick * period_ns))
+        assert action.horizon == 10
+        for j, row in enumerate(action.targets):
+            assert row == pytest.approx(per_tick[tick + j], abs=1e-12)

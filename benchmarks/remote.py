@@ -1,0 +1,291 @@
+"""Remote inference benchmark: one VGA observation in, one 50x6 chunk out, at 30 Hz, four ways, one run.
+
+1. openral over Zenoh TCP on loopback (``openral_remote``: the wire codec, a queryable, one worker,
+   the observation rebuilt as a ``WorldState`` and stepped through a skill, the chunk encoded back).
+2. The same over Zenoh shared memory (the request is written into a shared segment).
+3. gRPC + pickle, as LeRobot's async inference does it: the observation dict pickled into a
+   unary call, the chunk pickled back (code execution on both ends; here only for comparison).
+4. Zenoh alone: the same bytes to a queryable whose worker replies a fixed chunk's bytes (no
+   codec, no skill): the floor that openral's own Python work adds to.
+
+Then: how long after a server's SIGKILL the client knows it is down (liveliness, no request made).
+
+Each server runs in its own process and returns a fixed-shape chunk at once, so the figures are
+the transport's and the codec's; paced at the rate (caches go cold between requests, as on a
+robot) and back to back. Target: openral TCP p50 <= 3 ms on loopback at 30 Hz.
+
+Run:  uv run python benchmarks/remote.py [--seconds 10] [--rate-hz 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from concurrent import futures
+from typing import Any
+
+import numpy as np
+
+from _common import machine_line
+from openral_core import FrameEncoding, JointState, SensorFrame, WorldState
+from openral_remote.client import RemotePolicyClient
+from openral_remote.codec import encode
+from openral_remote.config import ZenohConfig
+from openral_remote.keys import PolicyKeys
+from openral_remote.observation import world_fields
+from openral_remote.testing import POLICY, ROBOT
+
+CHUNK, DIMS = 50, 6
+GRPC_METHOD = "/openral.bench.Policy/Infer"
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _world() -> WorldState:
+    image = np.random.default_rng(0).integers(0, 256, size=(480, 640, 3), dtype=np.uint8)
+    frame = SensorFrame(sensor_id="front", stamp_ns=1, width=640, height=480, encoding=FrameEncoding.BGR8, data=image)
+    joints = JointState(names=[f"j{i}" for i in range(DIMS)], positions=[0.1] * DIMS)
+    return WorldState(stamp_ns=1, joint_state=joints, image_frames={"front": frame})
+
+
+Timings = tuple[list[float], list[float]]
+"""Round trips in ms: paced at the rate, then back to back."""
+
+
+def _paced(call: Callable[[], Any], seconds: float, rate_hz: float) -> Timings:
+    """Round trips (ms) of ``call`` on an absolute 1/rate schedule after a warm-up, then as many back to back."""
+    for _ in range(20):
+        call()
+    period = 1.0 / rate_hz
+    paced: list[float] = []
+    start = time.perf_counter()
+    count = int(seconds * rate_hz)
+    for k in range(count):
+        slot = start + k * period
+        delay = slot - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        began = time.perf_counter()
+        call()
+        paced.append((time.perf_counter() - began) * 1e3)
+    back_to_back: list[float] = []
+    for _ in range(count):
+        began = time.perf_counter()
+        call()
+        back_to_back.append((time.perf_counter() - began) * 1e3)
+    return paced, back_to_back
+
+
+def _zenoh(seconds: float, rate_hz: float, shared_memory: bool) -> Timings:
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    server = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "openral_remote.testing", "--listen", endpoint, "--dims", str(DIMS)),
+            *("--chunk-size", str(CHUNK), "--rate-hz", str(rate_hz), "--observation", "all"),
+        ],
+    )
+    client = RemotePolicyClient(
+        PolicyKeys.of(ROBOT, POLICY), ZenohConfig(connect=[endpoint], shared_memory=shared_memory), deadline_ms=2000
+    )
+    try:
+        client.connect(timeout_s=30)
+        world = _world()
+        rows = client.infer(world)
+        assert rows.shape == (CHUNK, DIMS), rows.shape
+        return _paced(lambda: client.infer(world), seconds, rate_hz)
+    finally:
+        client.close()
+        server.terminate()
+        server.wait(10)
+
+
+def grpc_server(port: int) -> None:
+    """LeRobot's way: pickled observation in, pickled chunk out (never expose this to a network)."""
+    import grpc  # noqa: PLC0415
+
+    chunk = np.zeros((CHUNK, DIMS), dtype=np.float32)
+
+    def infer(observation: dict[str, Any], _context: Any) -> np.ndarray:
+        assert observation["observation.images.front"].shape == (480, 640, 3)
+        return chunk
+
+    handler = grpc.method_handlers_generic_handler(
+        "openral.bench.Policy",
+        {"Infer": grpc.unary_unary_rpc_method_handler(infer, pickle.loads, pickle.dumps)},
+    )
+    options = [("grpc.max_receive_message_length", 8 << 20), ("grpc.max_send_message_length", 8 << 20)]
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=1), options=options)
+    server.add_generic_rpc_handlers((handler,))
+    server.add_insecure_port(f"127.0.0.1:{port}")
+    server.start()
+    server.wait_for_termination()
+
+
+def _grpc(seconds: float, rate_hz: float) -> Timings:
+    import grpc  # noqa: PLC0415
+
+    port = _free_port()
+    server = subprocess.Popen([sys.executable, __file__, "--grpc-server", str(port)])
+    options = [("grpc.max_receive_message_length", 8 << 20), ("grpc.max_send_message_length", 8 << 20)]
+    channel = grpc.insecure_channel(f"127.0.0.1:{port}", options=options)
+    try:
+        grpc.channel_ready_future(channel).result(timeout=30)
+        infer = channel.unary_unary(GRPC_METHOD, request_serializer=pickle.dumps, response_deserializer=pickle.loads)
+        world = _world()
+        frame = (world.image_frames or {})["front"]
+
+        def call() -> None:
+            joints = world.joint_state
+            assert joints is not None
+            observation = {
+                "observation.images.front": frame.as_array(),
+                "observation.state": np.asarray(joints.positions, dtype=np.float32),
+                "timestamp": time.time(),
+            }
+            rows = infer(observation, timeout=2.0)
+            assert rows.shape == (CHUNK, DIMS)
+
+        return _paced(call, seconds, rate_hz)
+    finally:
+        channel.close()
+        server.terminate()
+        server.wait(10)
+
+
+ECHO_KEY = "openral/bench/echo"
+
+
+def echo_server(endpoint: str) -> None:
+    """Zenoh alone: a queryable whose worker thread answers every request with a fixed chunk's bytes."""
+    import collections  # noqa: PLC0415
+    import threading  # noqa: PLC0415
+
+    from openral_remote.session import open_session  # noqa: PLC0415
+
+    reply = np.zeros((CHUNK, DIMS), dtype=np.float64).tobytes()
+    jobs: collections.deque[Any] = collections.deque()
+    wake = threading.Condition()
+
+    def work() -> None:
+        while True:
+            with wake:
+                while not jobs:
+                    wake.wait()
+                query = jobs.popleft()
+            query.reply(ECHO_KEY, reply)
+            query.drop()
+
+    def on_query(query: Any) -> None:
+        query.payload.to_bytes()  # what any server does with the request: take it out of Zenoh
+        with wake:
+            jobs.append(query)
+            wake.notify()
+
+    session = open_session(ZenohConfig(listen=[endpoint]))
+    threading.Thread(target=work, daemon=True).start()
+    session.declare_queryable(ECHO_KEY, on_query, complete=True)
+    threading.Event().wait()
+
+
+def _echo(seconds: float, rate_hz: float) -> Timings:
+    from openral_remote.session import open_session  # noqa: PLC0415
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    server = subprocess.Popen([sys.executable, __file__, "--echo-server", endpoint])
+    session = open_session(ZenohConfig(connect=[endpoint], shared_memory=False))
+    try:
+        message = encode(world_fields(_world())[0])
+        querier = session.declare_querier(ECHO_KEY, timeout=2.0)
+
+        def call() -> None:
+            for reply in querier.get(payload=message):
+                assert reply.ok is not None
+                return
+            raise RuntimeError("no reply yet")
+
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                call()
+                break
+            except RuntimeError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+        return _paced(call, seconds, rate_hz)
+    finally:
+        session.close()
+        server.terminate()
+        server.wait(10)
+
+
+def _kill_detection(repeats: int) -> list[float]:
+    """Milliseconds from a server's SIGKILL to ``available()`` turning false, without a request."""
+    import os  # noqa: PLC0415
+    import signal  # noqa: PLC0415
+
+    found: list[float] = []
+    for _ in range(repeats):
+        endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        server = subprocess.Popen([sys.executable, "-m", "openral_remote.testing", "--listen", endpoint])
+        client = RemotePolicyClient(PolicyKeys.of(ROBOT, POLICY), ZenohConfig(connect=[endpoint]))
+        try:
+            client.connect(timeout_s=30)
+            killed = time.perf_counter()
+            os.kill(server.pid, signal.SIGKILL)
+            while client.available() and time.perf_counter() - killed < 5:
+                time.sleep(0.0002)
+            found.append((time.perf_counter() - killed) * 1e3)
+        finally:
+            client.close()
+            server.wait(10)
+    return found
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--rate-hz", type=float, default=30.0)
+    parser.add_argument("--grpc-server", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--echo-server", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.grpc_server is not None:
+        grpc_server(args.grpc_server)
+        return
+    if args.echo_server is not None:
+        echo_server(args.echo_server)
+        return
+    print(machine_line())
+    print(f"VGA BGR observation (921,600 B of pixels) + {DIMS} joints in, {CHUNK}x{DIMS} chunk out")
+    print(f"paced at {args.rate_hz:g} Hz for {args.seconds:g} s, then as many back to back")
+    rows = [
+        ("openral / Zenoh TCP", _zenoh(args.seconds, args.rate_hz, shared_memory=False)),
+        ("openral / Zenoh shared memory", _zenoh(args.seconds, args.rate_hz, shared_memory=True)),
+        ("gRPC + pickle (LeRobot's way)", _grpc(args.seconds, args.rate_hz)),
+        ("Zenoh alone, TCP (bytes echo)", _echo(args.seconds, args.rate_hz)),
+    ]
+    detection = _kill_detection(5)
+    tcp_p50 = float(np.percentile(rows[0][1][0], 50))
+    print(
+        f"{'transport':32s} {'n':>5s} {'p50 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} "
+        f"{'p50 / openral TCP':>18s} {'back-to-back p50':>17s}"
+    )
+    for name, (paced, back_to_back) in rows:
+        p50, p99 = np.percentile(paced, [50, 99])
+        b2b = float(np.percentile(back_to_back, 50))
+        print(f"{name:32s} {len(paced):5d} {p50:8.2f} {p99:8.2f} {max(paced):8.2f} {p50 / tcp_p50:18.2f} {b2b:17.2f}")
+
+    print(f"server SIGKILLed -> client knows it is down: {' '.join(f'{ms:.1f}' for ms in detection)} ms")
+
+
+if __name__ == "__main__":
+    main()
