@@ -34,6 +34,14 @@ from openral_core.errors import (
 )
 from openral_core.execution import ExecutorConfig, FallbackSkill, SeamMode, StarvationFallback, VirtualLatency
 from openral_core.frames import FrameEncoding, SensorFrame
+from openral_core.perception import (
+    MotionMetadata,
+    ObjectDetection2D,
+    ObjectsMetadata,
+    PerceptionEvent,
+    PixelBox,
+    SceneChangeMetadata,
+)
 from openral_core.results import RunResult, StopReason, TickResult, WithheldReason
 from openral_core.robot import JointKind, JointSpec, ModelRef, RobotManifest
 from openral_core.sim import (
@@ -67,7 +75,12 @@ __all__ = [
     "JointSpec",
     "JointState",
     "ModelRef",
+    "MotionMetadata",
+    "ObjectDetection2D",
+    "ObjectsMetadata",
     "ObserverConfig",
+    "PerceptionEvent",
+    "PixelBox",
     "Pose6D",
     "PrivilegedState",
     "ROSConfigError",
@@ -93,6 +106,7 @@ __all__ = [
     "SafetyConfig",
     "SafetyEnvelope",
     "SafetyMode",
+    "SceneChangeMetadata",
     "SeamMode",
     "SensorFrame",
     "SensorReaderBackend",

@@ -163,6 +163,18 @@ METRIC_REMOTE_FAILURES: Final = "openral.remote.failures"
 METRIC_REMOTE_SERVER_CHANGES: Final = "openral.remote.server_changes"
 """Client: the server went down or came back, by ``openral.remote.outcome`` (``down``, ``up``, ``refused``)."""
 
+# Perception events (openral_runner.backends.gstreamer.perception_tee)
+SPAN_PERCEPTION_DETECT: Final = "openral.perception.detect"
+"""One detector run on one frame (off the tick thread)."""
+EVENT_PERCEPTION: Final = "openral.event.perception"
+"""A detector found something (on its detect span)."""
+ATTR_PERCEPTION_KIND: Final = "openral.perception.kind"
+ATTR_PERCEPTION_SUMMARY: Final = "openral.perception.summary"
+METRIC_PERCEPTION_EVENTS: Final = "openral.perception.events"
+"""Events published, by kind (counter)."""
+METRIC_PERCEPTION_DROPPED: Final = "openral.perception.dropped_frames"
+"""Frames a detector never looked at: rate-limited (by kind) or superseded by a newer one (counter)."""
+
 # Log records (structlog → OpenTelemetry): the keys that carry the current span's ids
 LOG_TRACE_ID: Final = "trace_id"
 LOG_SPAN_ID: Final = "span_id"

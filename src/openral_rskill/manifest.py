@@ -12,9 +12,9 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping
 from importlib import resources
 from pathlib import Path
-from typing import Any, Self
+from typing import Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 
 from openral_core.actions import ControlMode
 from openral_core.config import load_model_yaml
@@ -45,26 +45,60 @@ _SPDX_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9.+-]*$"
 _ID_PATTERN = r"^[a-z][a-z0-9_]*$"
 
 
+class DetectorContract(BaseModel):
+    """What a ``kind: detector`` rSkill detects and how it runs."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    engine: Literal["rtdetr", "zeroshot_hf"] = Field(
+        default="rtdetr", description="rtdetr: a model with the RT-DETR signature; zeroshot_hf: a hub zero-shot model."
+    )
+    runtime: Literal["onnx", "tensorrt", "pytorch"] = Field(default="onnx", description="What runs the model.")
+    model: str | None = Field(default=None, description="The model file, relative to the manifest.")
+    labels: list[str] = Field(min_length=1, description="Class names, in the model's class order.")
+    input_size: tuple[int, int] = Field(default=(640, 640), description="The model's (height, width).")
+    score_threshold: float = Field(default=0.5, ge=0, le=1)
+    resize: Literal["stretch", "letterbox"] = "stretch"
+    mode: Literal["continuous", "on_demand"] = Field(
+        default="continuous", description="continuous: every frame it is given; on_demand: when asked."
+    )
+
+
+class RewardContract(BaseModel):
+    """How a ``kind: reward`` rSkill's scores read."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    num_bins: int = Field(default=100, ge=2, description="The model's progress resolution.")
+    success_threshold: float = Field(default=0.5, ge=0, le=1, description="Success probability that counts.")
+    deadline_s: float = Field(default=5.0, gt=0, description="Longest a scoring request may take.")
+
+
 class RSkillManifest(BaseModel):
     """``rskill.yaml``: what a skill is and where it may run.
 
     Attributes:
         name: Human-readable name of this rSkill (a packaged skill, possibly with weights).
         version: Version of the rSkill.
-        skill: Plugin id in the ``openral.skills`` entry-point group that runs it.
+        kind: ``policy`` (acts), ``detector`` (finds objects in camera frames) or ``reward``
+            (scores task progress).
+        skill: A policy's plugin id in the ``openral.skills`` entry-point group.
         license: SPDX licence id of the skill and its weights (``LicenseRef-...`` for others).
         control_mode: What its actions command.
         chunk_size: Steps per inference (1 for a skill that emits one command per tick).
         robots: Robot ids it is compatible with; empty means any robot.
         weights_uri: Where its weights live, when it has any.
         params: Default ``vla.params`` for the skill; the deployment's values override them.
+        detector: A detector's contract.
+        reward: A reward model's contract.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     name: str = Field(min_length=1)
     version: str = "0.0.0"
-    skill: str = Field(pattern=_ID_PATTERN)
+    kind: Literal["policy", "detector", "reward"] = "policy"
+    skill: str | None = Field(default=None, pattern=_ID_PATTERN)
     license: str = Field(pattern=_SPDX_PATTERN)
     description: str = ""
     control_mode: ControlMode = ControlMode.JOINT_POSITION
@@ -72,8 +106,25 @@ class RSkillManifest(BaseModel):
     robots: list[str] = Field(default_factory=list)
     weights_uri: str | None = None
     params: dict[str, Any] = Field(default_factory=dict)
+    detector: DetectorContract | None = None
+    reward: RewardContract | None = None
 
     _source: str | None = PrivateAttr(default=None)
+
+    @model_validator(mode="after")
+    def _kind_has_its_block(self) -> Self:
+        needs = {"policy": "skill", "detector": "detector", "reward": "reward"}[self.kind]
+        if getattr(self, needs) is None:
+            raise ValueError(f"a {self.kind} manifest needs '{needs}'")
+        stray = [name for name in ("skill", "detector", "reward") if name != needs and getattr(self, name) is not None]
+        if stray:
+            raise ValueError(f"a {self.kind} manifest has no {', '.join(stray)}")
+        return self
+
+    @property
+    def path(self) -> Path | None:
+        """The manifest's file, when it was loaded from one."""
+        return None if self._source is None else Path(self._source)
 
     @classmethod
     def from_yaml(
@@ -141,6 +192,8 @@ class RSkillManifest(BaseModel):
 
     def to_info(self) -> RSkillInfo:
         """The manifest's identity as the :class:`RSkillInfo` the runner reports."""
+        if self.skill is None:
+            raise ROSConfigError(f"{self.source} is a {self.kind} manifest, not a policy", field="kind")
         return RSkillInfo(
             skill_id=self.skill,
             name=self.name,

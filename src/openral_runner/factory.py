@@ -81,6 +81,8 @@ def build_runner(
         manifest_path = resolve_user_path(env.vla.manifest, base_dir, field="vla.manifest")
         rskill = RSkillManifest.from_yaml(manifest_path, accept_licenses=env.vla.accept_licenses)
         rskill.check_compatible(robot.robot_id)
+        if rskill.kind != "policy":
+            raise ROSConfigError(f"manifest {manifest_path} is a {rskill.kind}, not a policy", field="vla.manifest")
         if rskill.skill != env.vla.id:
             raise ROSConfigError(
                 f"manifest {manifest_path} is for skill '{rskill.skill}', not '{env.vla.id}'",

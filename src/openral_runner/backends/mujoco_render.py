@@ -97,6 +97,24 @@ class OffscreenRenderer:
         mujoco.mjr_readPixels(out, None, self._rect, self._context)
         return out
 
+    def render_depth(self) -> np.ndarray:
+        """Pose :attr:`data` and render its depth: a new ``(H, W)`` float32 array of metres along the view axis,
+        bottom row first (``inf`` where nothing is within the far plane)."""
+        model, data = self.model, self.data
+        mujoco.mj_fwdPosition(model, data)
+        mujoco.mjv_updateScene(
+            model, data, self._option, None, self._camera, mujoco.mjtCatBit.mjCAT_ALL.value, self._scene
+        )
+        mujoco.mjr_render(self._rect, self._scene, self._context)
+        buffer = np.empty(self._shape[:2], dtype=np.float32)
+        mujoco.mjr_readPixels(None, buffer, self._rect, self._context)
+        extent = float(model.stat.extent)
+        near, far = float(model.vis.map.znear) * extent, float(model.vis.map.zfar) * extent
+        with np.errstate(divide="ignore"):
+            depth = near / (1.0 - buffer * (1.0 - near / far))
+        depth[buffer >= 1.0] = np.inf
+        return depth.astype(np.float32)
+
     def free(self) -> None:
         """Release the MuJoCo render context and the GL context. Idempotent."""
         context, self._context = self._context, None

@@ -19,11 +19,12 @@ from typing import Any, Self
 
 import numpy as np
 
-from openral_core import ROSConfigError, ROSDependencyMissing, SimEnvironment
+from openral_core import PixelBox, ROSConfigError, ROSDependencyMissing, SimEnvironment
 from openral_sim.env import EnvSpec, SimObservation, SimStep
 from openral_sim.envs.mujoco_views import MujocoViews, check_cameras
 
 try:
+    import mujoco
     from lerobot_env_so101.mujoco_env import GymRenderingSpec
     from lerobot_env_so101.pick_env import SO101PickCubeGymEnv
     from lerobot_env_so101.pick_place_env import SO101PickPlaceGymEnv
@@ -65,6 +66,7 @@ class SO101Env:
             environment_state_names=env_names,
         )
         self._views = MujocoViews(self._env.model, self._env.data, env=task)
+        self._base_id = mujoco.mj_name2id(self._env.model, mujoco.mjtObj.mjOBJ_BODY, "base")
 
     @classmethod
     def from_scene(cls, scene: SimEnvironment) -> Self:
@@ -99,6 +101,24 @@ class SO101Env:
 
     def render(self, camera: str, width: int, height: int) -> np.ndarray:
         return self._views.render(camera, width, height)
+
+    def depth(self, camera: str, width: int, height: int) -> np.ndarray:
+        """A depth image of ``camera`` in metres (``inf`` where nothing is)."""
+        return self._views.depth(camera, width, height)
+
+    def project_geom(self, geom: str, camera: str, width: int, height: int) -> PixelBox:
+        """Where a geom (``block``: the cube) lies in ``camera``'s image: a detector's ground truth."""
+        return self._views.project_geom(geom, camera, width, height)
+
+    def base_position(self) -> np.ndarray:
+        """The robot base's position in the world."""
+        return np.array(self._env.data.xpos[self._base_id])
+
+    def points_in_base(self, camera: str, width: int, height: int) -> np.ndarray:
+        """What ``camera``'s depth sees, as ``(N, 3)`` points in the robot base's frame."""
+        data = self._env.data
+        rotation = np.asarray(data.xmat[self._base_id]).reshape(3, 3)
+        return np.asarray((self._views.points(camera, width, height) - data.xpos[self._base_id]) @ rotation)
 
     def close(self) -> None:
         self._views.close()

@@ -1,0 +1,47 @@
+"""Perception events on Zenoh: ``openral/<robot>/perception/<kind>``, one JSON ``PerceptionEvent`` per sample."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from openral_core.perception import PerceptionEvent
+from openral_remote.config import ZenohConfig
+from openral_remote.keys import PolicyKeys
+from openral_remote.session import open_session
+
+
+def event_key(robot: str, kind: str) -> str:
+    """The key events of ``kind`` are published on (both segments checked)."""
+    keys = PolicyKeys.of(robot, kind)  # the same segment rules as a policy's name
+    return f"openral/{keys.robot}/perception/{keys.policy}"
+
+
+class ZenohEventSink:
+    """Publishes each event on its kind's key; publishers are declared on first use.
+
+    Args:
+        zenoh: The session's settings.
+        robot: The robot segment of the keys.
+    """
+
+    def __init__(self, zenoh: ZenohConfig, robot: str) -> None:
+        self.robot = robot
+        self._session: Any = open_session(zenoh)
+        self._publishers: dict[str, Any] = {}
+
+    def publish(self, event: PerceptionEvent) -> None:
+        publisher = self._publishers.get(event.kind)
+        if publisher is None:
+            publisher = self._publishers[event.kind] = self._session.declare_publisher(
+                event_key(self.robot, event.kind)
+            )
+        publisher.put(event.model_dump_json().encode("utf-8"))
+
+    def close(self) -> None:
+        """Undeclare the publishers and close the session. Idempotent."""
+        for publisher in self._publishers.values():
+            publisher.undeclare()
+        self._publishers = {}
+        if self._session is not None:
+            self._session.close()
+            self._session = None

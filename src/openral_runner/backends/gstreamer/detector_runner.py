@@ -1,0 +1,116 @@
+"""``DetectorRunner``: a ``kind: detector`` rSkill on a live camera, as a branch of its tee.
+
+The detector is built from the manifest (:mod:`~openral_runner.backends.gstreamer.detector_factory`)
+and runs on a branch :class:`~openral_runner.backends.gstreamer.tee_manager.TeeManager` attaches
+behind the tee's leaky queue (``videoconvert`` to BGR, an appsink keeping only the newest frame),
+so however slow it is the policy's leg never waits. Each detection is handed to ``on_detection``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import structlog
+
+from openral_core import ROSRuntimeError
+from openral_core.perception import ObjectsMetadata
+from openral_rskill.manifest import RSkillManifest
+from openral_runner.backends.gstreamer.detector_factory import build_manifest_detector
+from openral_runner.backends.gstreamer.pipeline import TEE_NAME
+from openral_runner.backends.gstreamer.tee_manager import BranchHandle, TeeManager
+
+try:
+    from gi.repository import Gst  # tee_manager (imported above) checked gi and initialised GStreamer
+except ImportError as exc:  # pragma: no cover - tee_manager raised first
+    raise ROSRuntimeError("GStreamer is not importable") from exc
+
+_log = structlog.get_logger(__name__)
+_ids = itertools.count()
+
+
+class DetectorRunner:
+    """Runs a detector manifest on ``pipeline``'s tee and calls ``on_detection`` with what it finds.
+
+    Args:
+        pipeline: A pipeline with a camera tee (``enable_event_tee`` or ``enable_ros_tee``).
+        manifest: A ``kind: detector`` rSkill manifest.
+        onnx_path: The model, when not the manifest's own.
+        sensor_id: Names the camera in the detections.
+        on_detection: Called (on the branch's streaming thread) with each frame's objects.
+        tier: Force a tier (default: the CPU).
+    """
+
+    def __init__(
+        self,
+        pipeline: Any,
+        manifest: RSkillManifest,
+        *,
+        sensor_id: str,
+        on_detection: Callable[[ObjectsMetadata], None],
+        onnx_path: str | None = None,
+        tee_name: str = TEE_NAME,
+        tier: str | None = None,
+    ) -> None:
+        self.detector, self.tier = build_manifest_detector(manifest, onnx_path=onnx_path, tier=tier)
+        self.sensor_id = sensor_id
+        self.on_detection = on_detection
+        self.tees = TeeManager(pipeline, tee_name=tee_name)
+        self.frames = 0
+        self.errors = 0
+        self._handle: BranchHandle | None = None
+        self._sink: Any = None
+        self._signal: int | None = None
+
+    def start(self) -> None:
+        """Attach the detector's branch. Idempotent."""
+        if self._handle is not None:
+            return
+        sink_name = f"openral_detector_sink_{next(_ids)}"
+        handle = self.tees.attach(
+            f"videoconvert ! video/x-raw,format=BGR ! appsink name={sink_name} emit-signals=true sync=false "
+            "max-buffers=1 drop=true",
+            name=f"{sink_name}_branch",
+        )
+        sink = handle.bin.get_by_name(sink_name)
+        if sink is None:
+            self.tees.detach(handle)
+            raise ROSRuntimeError(f"the detector branch has no appsink {sink_name!r}")
+        self._handle, self._sink = handle, sink
+        self._signal = sink.connect("new-sample", self._on_sample)
+
+    def stop(self) -> None:
+        """Detach the branch and release the detector. Idempotent."""
+        if self._sink is not None and self._signal is not None:
+            self._sink.disconnect(self._signal)
+        if self._handle is not None:
+            self.tees.detach(self._handle)
+        self._handle = self._sink = self._signal = None
+
+    def _on_sample(self, sink: Any) -> Any:
+        sample = sink.emit("pull-sample")
+        if sample is None:
+            return Gst.FlowReturn.OK
+        try:
+            structure = sample.get_caps().get_structure(0)
+            width, height = structure.get_value("width"), structure.get_value("height")
+            buffer = sample.get_buffer()
+            ok, mapped = buffer.map(Gst.MapFlags.READ)
+            if not ok:
+                return Gst.FlowReturn.OK
+            try:
+                stride = len(mapped.data) // height
+                frame = np.frombuffer(mapped.data, dtype=np.uint8).reshape(height, stride)[:, : width * 3]
+                frame = frame.reshape(height, width, 3).copy()  # the buffer goes back to its pool
+            finally:
+                buffer.unmap(mapped)
+            self.frames += 1
+            found = self.detector.detect(frame, width, height, self.sensor_id)
+            if found is not None:
+                self.on_detection(found)
+        except Exception as exc:  # the streaming thread must survive a bad frame or a failing callback
+            self.errors += 1
+            _log.warning("detector branch failed on a frame", sensor=self.sensor_id, error=str(exc))
+        return Gst.FlowReturn.OK
