@@ -25,11 +25,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import FrameEncoding, ROSConfigError, TickResult, WorldState
 from openral_core.config import validate_model
-from openral_remote.config import ZenohConfig
 from openral_runner.backends.gstreamer.perception_tee import (
     EventDetector,
     EventSink,
@@ -38,48 +36,7 @@ from openral_runner.backends.gstreamer.perception_tee import (
     SceneChangeDetector,
 )
 from openral_runner.observer import TickObserver
-
-
-class MotionParams(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    threshold: float = Field(default=25.0, ge=0, lt=255, description="Grey-level step that counts as a change.")
-    cell: int = Field(default=8, ge=1, description="Cell size in pixels.")
-    min_cell_fraction: float = Field(default=0.25, gt=0, le=1, description="Changed pixels that make a cell change.")
-    min_cells: int = Field(default=2, ge=1, description="Changed cells that make an event.")
-
-
-class SceneChangeParams(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    threshold: float = Field(default=0.5, gt=0, le=2, description="Chi-square distance (0–2) that is a change.")
-    bins: int = Field(default=32, ge=2, le=256)
-
-
-class ObjectsParams(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    model: str = Field(min_length=1, description="An ONNX detector with the RT-DETR signature.")
-    labels: list[str] = Field(min_length=1, description="Class names, in the model's class order.")
-    model_id: str | None = Field(default=None, description="Named in the events (default: the file's stem).")
-    input_size: tuple[int, int] = Field(default=(640, 640), description="The model's (height, width).")
-    score_threshold: float = Field(default=0.5, ge=0, le=1)
-    resize: str = Field(default="stretch", description="stretch or letterbox (keep the aspect, pad).")
-
-
-class PerceptionParams(BaseModel):
-    """``params`` of the ``perception`` observer."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    sensors: list[str] | None = Field(default=None, description="Cameras to watch (default: every camera).")
-    rate_hz: float = Field(default=5.0, gt=0, le=1000, description="Detections per second per camera and kind.")
-    burst: int = Field(default=1, ge=1, le=100)
-    motion: MotionParams | None = None
-    scene_change: SceneChangeParams | None = None
-    objects: ObjectsParams | None = None
-    zenoh: ZenohConfig | None = Field(default=None, description="Publish events on Zenoh with this session.")
-    robot: str | None = Field(default=None, description="Robot segment of the Zenoh keys (default: the robot id).")
+from openral_runner.perception_params import PerceptionParams
 
 
 def bgr_view(frame_array: np.ndarray, encoding: FrameEncoding) -> np.ndarray | None:
@@ -126,6 +83,21 @@ def build_detectors(params: PerceptionParams, base_dir: Path | None) -> list[Eve
     return detectors
 
 
+def build_publisher(params: PerceptionParams, *, robot_id: str, base_dir: Path | None) -> PerceptionEventPublisher:
+    """The detectors and sinks ``params`` asks for, in a publisher (not started)."""
+    detectors = build_detectors(params, base_dir)
+    sinks: list[EventSink] = []
+    if params.zenoh is not None:
+        # Loaded only when asked for: the sink imports eclipse-zenoh (the 'remote' extra).
+        events = importlib.import_module("openral_remote.events")
+        sinks.append(events.ZenohEventSink(params.zenoh, params.robot or robot_id))
+    if params.ros2:
+        # Loaded only when asked for: the sink imports rclpy (a ROS 2 installation).
+        ros2 = importlib.import_module("openral_runner.bridges.ros2_perception")
+        sinks.append(ros2.Ros2EventSink())
+    return PerceptionEventPublisher(detectors, sinks, rate_hz=params.rate_hz, burst=params.burst)
+
+
 class PerceptionObserver(TickObserver):
     """Feeds the frames of each tick to a perception publisher (O(1) per camera on the tick thread)."""
 
@@ -140,14 +112,7 @@ class PerceptionObserver(TickObserver):
     ) -> PerceptionObserver:
         """Plugin constructor (observer ``perception``); ``params`` are :class:`PerceptionParams`."""
         config = validate_model(PerceptionParams, dict(params), field_prefix="observers[].params")
-        detectors = build_detectors(config, base_dir)
-        sinks: list[EventSink] = []
-        if config.zenoh is not None:
-            # Loaded only when asked for: the sink imports eclipse-zenoh (the 'remote' extra).
-            events = importlib.import_module("openral_remote.events")
-            sinks.append(events.ZenohEventSink(config.zenoh, config.robot or robot.robot_id))
-        publisher = PerceptionEventPublisher(detectors, sinks, rate_hz=config.rate_hz, burst=config.burst)
-        return cls(publisher, sensors=config.sensors)
+        return cls(build_publisher(config, robot_id=robot.robot_id, base_dir=base_dir), sensors=config.sensors)
 
     def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
         frames = None if world is None else world.image_frames

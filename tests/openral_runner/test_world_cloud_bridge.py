@@ -103,3 +103,44 @@ def test_the_twins_depth_makes_a_picture_of_the_table_and_the_cube():
 def test_the_bridge_says_it_needs_ros_2():
     with pytest.raises(ROSDependencyMissing, match="ROS 2"):
         WorldCloudBridge(node=object())
+
+
+def test_the_bridge_records_a_picture_of_a_published_cloud(telemetry):
+    pytest.importorskip("rclpy", reason="rclpy needs a ROS 2 installation, which cannot be installed here")
+    import rclpy  # noqa: PLC0415
+    from geometry_msgs.msg import TransformStamped  # noqa: PLC0415
+    from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
+    from sensor_msgs_py import point_cloud2  # noqa: PLC0415
+    from std_msgs.msg import Header  # noqa: PLC0415
+    from tf2_ros import StaticTransformBroadcaster  # noqa: PLC0415
+
+    from openral_runner.world_cloud_bridge import SPAN_WORLD_CLOUD  # noqa: PLC0415
+
+    rclpy.init()
+    node = rclpy.create_node("world_cloud_test")
+    try:
+        transform = TransformStamped()
+        transform.header.frame_id = "base_link"
+        transform.child_frame_id = "map"
+        transform.transform.rotation.w = 1.0
+        StaticTransformBroadcaster(node).sendTransform(transform)
+        bridge = WorldCloudBridge(node, period_s=0.0)
+        publisher = node.create_publisher(
+            type(point_cloud2.create_cloud_xyz32(Header(), [])), "/octomap_point_cloud_centers", 1
+        )
+        header = Header()
+        header.frame_id = "map"
+        cloud = point_cloud2.create_cloud_xyz32(header, [[0.5, 0.0, 0.2], [1.0, 0.5, 0.4]])
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        for _ in range(50):
+            publisher.publish(cloud)
+            executor.spin_once(timeout_sec=0.1)
+            if telemetry.spans(SPAN_WORLD_CLOUD):
+                break
+        (span, *_rest) = telemetry.spans(SPAN_WORLD_CLOUD)
+        assert span.attributes["openral.world_cloud.points_in_box"] == 2
+        bridge.destroy()
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()

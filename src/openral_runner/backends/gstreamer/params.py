@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from openral_core import FrameEncoding, ROSConfigError, SensorReaderConfig
 from openral_core.config import config_error_from_validation
 from openral_runner.backends.gstreamer.pipeline import Codec, PipelineSpec, PixelFormat, Platform, Source
+from openral_runner.perception_params import PerceptionParams
 from openral_runner.sensor_reader import backend_params_field, require_video_file
 
 FORMAT_OF_ENCODING: dict[FrameEncoding, PixelFormat] = {
@@ -56,6 +57,9 @@ class GStreamerParams(BaseModel):
     event_rate_hz: float | None = Field(default=None, gt=0)
     max_buffers: int | None = Field(default=None, ge=1)
     appsink_name: str = "openral_sink"
+    perception: PerceptionParams | None = Field(
+        default=None, description="Event detectors on the event leg (needs enable_event_tee)."
+    )
 
     @model_validator(mode="after")
     def _pipeline_or_source(self) -> Self:
@@ -71,6 +75,8 @@ class GStreamerParams(BaseModel):
             )
             if builder_keys:
                 raise ValueError(f"{', '.join(builder_keys)} only apply to a built pipeline (source), not to pipeline")
+        if self.perception is not None and not self.enable_event_tee:
+            raise ValueError("perception runs on the event leg: set enable_event_tee: true")
         return self
 
 
@@ -86,6 +92,7 @@ class ReaderSettings:
     platform: Platform | None
     width: int | None
     height: int | None
+    perception: PerceptionParams | None = None
 
 
 def settings_from_config(config: SensorReaderConfig, *, base_dir: Path | None = None) -> ReaderSettings:
@@ -117,6 +124,7 @@ def settings_from_config(config: SensorReaderConfig, *, base_dir: Path | None = 
         platform=params.platform,
         width=config.width,
         height=config.height,
+        perception=params.perception,
     )
     if params.pipeline is not None:
         if config.publish_to_ros:

@@ -49,6 +49,7 @@ from openral_core import (
     SensorReaderConfig,
 )
 from openral_runner.backends.gstreamer.params import refield, settings_from_config
+from openral_runner.backends.gstreamer.perception_tee import PerceptionEventPublisher
 from openral_runner.backends.gstreamer.pipeline import (
     PipelineSpec,
     PixelFormat,
@@ -58,6 +59,7 @@ from openral_runner.backends.gstreamer.pipeline import (
     ensure_appsink_name,
 )
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
+from openral_runner.perception import build_publisher
 
 try:
     import gi
@@ -122,6 +124,8 @@ class GStreamerSensorReader(SlotReader):
         width / height: Expected frame size; a different delivered size is a reader failure.
             Default: the spec's size.
         frame_id: Optical frame of the camera, copied into every frame.
+        events: Runs event detectors on the frames of the event leg (``enable_event_tee``);
+            started and stopped with the pipeline.
 
     Raises:
         ROSConfigError: Both or neither of spec and pipeline; a pipeline with no appsink; CSI or
@@ -140,6 +144,7 @@ class GStreamerSensorReader(SlotReader):
         width: int | None = None,
         height: int | None = None,
         frame_id: str | None = None,
+        events: PerceptionEventPublisher | None = None,
     ) -> None:
         if (spec is None) == (pipeline is None):
             raise ROSConfigError(
@@ -165,9 +170,16 @@ class GStreamerSensorReader(SlotReader):
         else:
             self.appsink_name = appsink_name or "openral_sink"
             self.pipeline_string = ensure_appsink_name(str(pipeline), self.appsink_name)
+        if events is not None and (spec is None or not spec.enable_event_tee):
+            raise ROSConfigError(
+                f"sensor '{sensor_id}': event detectors run on the event leg", hint="set enable_event_tee"
+            )
         self.spec = spec
         self.width = width
         self.height = height
+        self.events = events
+        self._event_sink: Any = None
+        self._event_handler: int | None = None
         self._slot = LatestFrameSlot(sensor_id, default_max_age_ms=default_max_age_ms, clock_ns=time.monotonic_ns)
         self._clock = GObject.new(Gst.SystemClock, clock_type=Gst.ClockType.MONOTONIC)
         self._lock = threading.Lock()
@@ -196,6 +208,9 @@ class GStreamerSensorReader(SlotReader):
             ROSConfigError: A wrong or missing parameter, named as ``sensors[<id>].backend_params.<key>``.
         """
         settings = settings_from_config(config, base_dir=base_dir)
+        events = None
+        if settings.perception is not None:
+            events = build_publisher(settings.perception, robot_id=robot.robot_id, base_dir=base_dir)
         try:
             reader = cls(
                 sensor_id=settings.sensor_id,
@@ -206,6 +221,7 @@ class GStreamerSensorReader(SlotReader):
                 default_max_age_ms=settings.default_max_age_ms,
                 width=settings.width,
                 height=settings.height,
+                events=events,
             )
             reader.check()  # what parses now starts later: validate refuses a pipeline open() would
             return reader
@@ -297,6 +313,11 @@ class GStreamerSensorReader(SlotReader):
         self._sample_handler = sink.connect("new-sample", self._on_new_sample)
         pipeline.use_clock(self._clock)
         pipeline.get_bus().set_sync_handler(self._on_bus_message)
+        if self.events is not None and self.spec is not None:
+            self._event_sink = pipeline.get_by_name(self.spec.event_appsink_name)
+            self._event_sink.set_property("emit-signals", True)
+            self._event_handler = self._event_sink.connect("new-sample", self._on_event_sample)
+            self.events.start()
         if pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
             cause = self._bus_error
             detail = str(cause).removeprefix(f"sensor '{self.sensor_id}': ") if cause else self.pipeline_string
@@ -311,6 +332,11 @@ class GStreamerSensorReader(SlotReader):
         pipeline.get_state(_NULL_STATE_TIMEOUT_NS)
         if sink is not None and handler is not None:
             sink.disconnect(handler)
+        if self._event_sink is not None and self._event_handler is not None:
+            self._event_sink.disconnect(self._event_handler)
+        self._event_sink = self._event_handler = None
+        if self.events is not None:
+            self.events.stop()
         pipeline.get_bus().set_sync_handler(None)
 
     def _restrict_caps(self, sink: Any) -> None:
@@ -377,6 +403,28 @@ class GStreamerSensorReader(SlotReader):
             self._latch(ROSRuntimeError(f"sensor '{self.sensor_id}': could not read a GStreamer sample: {exc}"))
             return Gst.FlowReturn.ERROR
         self._slot.publish(frame)
+        return Gst.FlowReturn.OK
+
+    def _on_event_sample(self, sink: Any) -> Any:
+        """The event leg's frame (BGR, rate-capped by the pipeline) to the detectors' worker; never blocks."""
+        sample = sink.emit("pull-sample")
+        events = self.events
+        if sample is None or events is None:
+            return Gst.FlowReturn.OK
+        arrival_ns = time.monotonic_ns()
+        structure = sample.get_caps().get_structure(0)
+        width, height = structure.get_value("width"), structure.get_value("height")
+        buffer = sample.get_buffer()
+        ok, mapped = buffer.map(Gst.MapFlags.READ)
+        if not ok:
+            return Gst.FlowReturn.OK
+        try:
+            stride = len(mapped.data) // height
+            rows = np.frombuffer(mapped.data, dtype=np.uint8).reshape(height, stride)[:, : width * 3]
+            frame = rows.reshape(height, width, 3).copy()  # the buffer goes back to its pool
+        finally:
+            buffer.unmap(mapped)
+        events.submit(frame, self.sensor_id, self._capture_stamp(sample, buffer, sink, arrival_ns))
         return Gst.FlowReturn.OK
 
     def _frame_from_sample(self, sample: Any, sink: Any, arrival_ns: int) -> SensorFrame:
