@@ -47,3 +47,20 @@ class ComponentTimer:
                     per_tick[-1] += elapsed
 
         return timed
+
+
+def run_deployment(env: Any, base_dir: Any, seconds: float, *, settle_s: float = 1.0) -> tuple[Any, Any]:
+    """Build ``env``, start it, let cameras settle, run it for ``seconds`` and close it: ``(RunResult, runner)``."""
+    from openral_runner.factory import build_runner  # noqa: PLC0415
+
+    runner, skill = build_runner(env, base_dir=base_dir)
+    skill.configure()
+    skill.activate()
+    runner.activate()
+    try:
+        time.sleep(settle_s)  # let the cameras start delivering
+        result = runner.run(duration_s=seconds)
+    finally:
+        runner.deactivate()
+        skill.shutdown()
+    return result, runner

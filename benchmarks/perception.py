@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from _common import machine_line
+from _common import machine_line, run_deployment
 from openral_core import RobotEnvironment
 from openral_runner.backends.gstreamer.objects_detector import ObjectsDetector
 from openral_runner.backends.gstreamer.perception_tee import MotionDetector, SceneChangeDetector
-from openral_runner.factory import build_runner
+from openral_runner.perception import PerceptionObserver
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOYMENTS = ROOT / "deployments"
@@ -38,21 +38,14 @@ def twin_jitter(seconds: float, *, perception: bool) -> tuple[float, float, floa
     else:
         observers = []
     env = env.model_copy(update={"observers": observers})
-    runner, skill = build_runner(env, base_dir=DEPLOYMENTS)
-    skill.configure()
-    skill.activate()
-    runner.activate()
-    try:
-        time.sleep(1.0)
-        result = runner.run(duration_s=seconds)
-        published: dict[str, Any] = {}
-        for observer in runner.observers:
-            publisher = getattr(observer, "publisher", None)
-            if publisher is not None:
-                published = {"events": dict(publisher.published), "dropped": sum(publisher.dropped.values())}
-    finally:
-        runner.deactivate()
-        skill.shutdown()
+    result, runner = run_deployment(env, DEPLOYMENTS, seconds)
+    published: dict[str, Any] = {}
+    for observer in runner.observers:
+        if isinstance(observer, PerceptionObserver):
+            published = {
+                "events": dict(observer.publisher.published),
+                "dropped": sum(observer.publisher.dropped.values()),
+            }
     return result.start_jitter_us_p50, result.start_jitter_us_p99, result.tick_ms_p99, published
 
 

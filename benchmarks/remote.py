@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import pickle
-import socket
 import subprocess
 import sys
 import time
@@ -38,16 +37,10 @@ from openral_remote.codec import encode
 from openral_remote.config import ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.observation import world_fields
-from openral_remote.testing import POLICY, ROBOT
+from openral_remote.testing import POLICY, ROBOT, free_endpoint
 
 CHUNK, DIMS = 50, 6
 GRPC_METHOD = "/openral.bench.Policy/Infer"
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _world() -> WorldState:
@@ -86,7 +79,7 @@ def _paced(call: Callable[[], Any], seconds: float, rate_hz: float) -> Timings:
 
 
 def _zenoh(seconds: float, rate_hz: float, shared_memory: bool) -> Timings:
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = free_endpoint()
     server = subprocess.Popen(
         [
             *(sys.executable, "-m", "openral_remote.testing", "--listen", endpoint, "--dims", str(DIMS)),
@@ -133,7 +126,7 @@ def grpc_server(port: int) -> None:
 def _grpc(seconds: float, rate_hz: float) -> Timings:
     import grpc  # noqa: PLC0415
 
-    port = _free_port()
+    port = int(free_endpoint().rsplit(":", 1)[1])
     server = subprocess.Popen([sys.executable, __file__, "--grpc-server", str(port)])
     options = [("grpc.max_receive_message_length", 8 << 20), ("grpc.max_send_message_length", 8 << 20)]
     channel = grpc.insecure_channel(f"127.0.0.1:{port}", options=options)
@@ -199,7 +192,7 @@ def echo_server(endpoint: str) -> None:
 def _echo(seconds: float, rate_hz: float) -> Timings:
     from openral_remote.session import open_session  # noqa: PLC0415
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = free_endpoint()
     server = subprocess.Popen([sys.executable, __file__, "--echo-server", endpoint])
     session = open_session(ZenohConfig(connect=[endpoint], shared_memory=False))
     try:
@@ -235,7 +228,7 @@ def _kill_detection(repeats: int) -> list[float]:
 
     found: list[float] = []
     for _ in range(repeats):
-        endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        endpoint = free_endpoint()
         server = subprocess.Popen([sys.executable, "-m", "openral_remote.testing", "--listen", endpoint])
         client = RemotePolicyClient(PolicyKeys.of(ROBOT, POLICY), ZenohConfig(connect=[endpoint]))
         try:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import machine_line
+from _common import machine_line, run_deployment
 from openral_core import Action, RobotEnvironment, RSkillInfo, WorldState
 from openral_rskill.base import RSkillBase
 from openral_runner.factory import build_runner
@@ -98,16 +98,7 @@ def measure_backend(label: str, env: RobotEnvironment, seconds: float) -> str:
 
 def twin_jitter(seconds: float, *, camera: bool) -> tuple[float, float, float]:
     env = RobotEnvironment.from_yaml(DEPLOYMENTS / ("so101_twin_camera.yaml" if camera else "so101_twin_hello.yaml"))
-    runner, skill = build_runner(env, base_dir=DEPLOYMENTS)
-    skill.configure()
-    skill.activate()
-    runner.activate()
-    try:
-        time.sleep(1.0)
-        result = runner.run(duration_s=seconds)
-    finally:
-        runner.deactivate()
-        skill.shutdown()
+    result, _runner = run_deployment(env, DEPLOYMENTS, seconds)
     return result.start_jitter_us_p50, result.start_jitter_us_p99, result.tick_ms_p99
 
 

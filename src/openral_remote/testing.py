@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import signal
+import socket
 import threading
 import time
 from collections.abc import Sequence
@@ -24,6 +25,13 @@ from openral_rskill.base import RSkillBase
 
 ROBOT = "test_robot"
 POLICY = "chunks"
+
+
+def free_endpoint() -> str:
+    """A loopback TCP endpoint on a port free right now (for a test's or a benchmark's server)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
 
 
 class ChunkSkill(RSkillBase):

@@ -28,6 +28,7 @@ import numpy as np
 
 from openral_core import FrameEncoding, ROSConfigError, TickResult, WorldState
 from openral_core.config import validate_model
+from openral_rskill.manifest import RSkillManifest
 from openral_runner.backends.gstreamer.perception_tee import (
     EventDetector,
     EventSink,
@@ -43,11 +44,11 @@ def bgr_view(frame_array: np.ndarray, encoding: FrameEncoding) -> np.ndarray | N
     """A BGR (or grey) view of a frame's pixels without copying; ``None`` for compressed or 16-bit frames."""
     if encoding in (FrameEncoding.BGR8, FrameEncoding.MONO8):
         return frame_array
-    if encoding is FrameEncoding.RGB8:
+    if encoding == FrameEncoding.RGB8:
         return frame_array[..., ::-1]
-    if encoding is FrameEncoding.BGRA8:
+    if encoding == FrameEncoding.BGRA8:
         return frame_array[..., :3]
-    if encoding is FrameEncoding.RGBA8:
+    if encoding == FrameEncoding.RGBA8:
         return frame_array[..., 2::-1]
     return None
 
@@ -76,9 +77,18 @@ def build_detectors(params: PerceptionParams, base_dir: Path | None) -> list[Eve
                 resize=objects.resize,
             )
         )
+    if params.detector_manifest is not None:
+        manifest_path = Path(params.detector_manifest)
+        if not manifest_path.is_absolute() and base_dir is not None:
+            manifest_path = base_dir / manifest_path
+        factory = importlib.import_module("openral_runner.backends.gstreamer.detector_factory")
+        manifest = RSkillManifest.from_yaml(manifest_path, field="observers[].params.detector_manifest")
+        detectors.append(factory.build_manifest_detector(manifest)[0])
     if not detectors:
         raise ROSConfigError(
-            "no detector is on", field="observers[].params", hint="set motion, scene_change or objects"
+            "no detector is on",
+            field="observers[].params",
+            hint="set motion, scene_change, objects or detector_manifest",
         )
     return detectors
 

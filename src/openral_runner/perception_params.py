@@ -47,6 +47,9 @@ class PerceptionParams(BaseModel):
     motion: MotionParams | None = None
     scene_change: SceneChangeParams | None = None
     objects: ObjectsParams | None = None
+    detector_manifest: str | None = Field(
+        default=None, description="A kind: detector rSkill manifest (instead of objects), relative to the deployment."
+    )
     zenoh: ZenohConfig | None = Field(default=None, description="Publish events on Zenoh with this session.")
     robot: str | None = Field(default=None, description="Robot segment of the Zenoh keys (default: the robot id).")
     ros2: bool = Field(default=False, description="Also publish on ROS 2 /openral/perception/<kind> (needs rclpy).")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import threading
@@ -20,21 +19,16 @@ pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def test_events_of_every_detector_reach_a_zenoh_subscriber(tmp_path: Path) -> None:
     from openral_core.perception import PerceptionEvent  # noqa: PLC0415
     from openral_remote.config import ZenohConfig  # noqa: PLC0415
     from openral_remote.session import open_session  # noqa: PLC0415
+    from openral_remote.testing import free_endpoint  # noqa: PLC0415
 
-    port = _free_port()
+    endpoint = free_endpoint()
     deployment = yaml.safe_load((ROOT / "deployments" / "so101_twin_perception.yaml").read_text(encoding="utf-8"))
     perception = deployment["observers"][0]["params"]
-    perception["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
+    perception["zenoh"]["listen"] = [endpoint]
     perception["objects"]["model"] = str(ROOT / "models" / "cube_detector.onnx")
     path = tmp_path / "perception.yaml"
     path.write_text(yaml.safe_dump(deployment), encoding="utf-8")
@@ -54,7 +48,7 @@ def test_events_of_every_detector_reach_a_zenoh_subscriber(tmp_path: Path) -> No
         text=True,
     )
     # The deployment listens; the subscriber connects (retrying until the deployment's session is up).
-    session = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+    session = open_session(ZenohConfig(connect=[endpoint]))
     subscriber = session.declare_subscriber("openral/so101_follower/perception/**", on_sample)
     try:
         out, err = deploy.communicate(timeout=200)

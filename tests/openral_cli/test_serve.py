@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -14,6 +13,7 @@ import pytest
 
 from openral_observability import semconv
 from openral_observability.testing import OTLPReceiver
+from openral_remote.testing import free_endpoint
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -21,12 +21,6 @@ ROOT = Path(__file__).resolve().parents[2]
 SCENE = ROOT / "scenes" / "sim" / "so101_pick.yaml"
 MODEL = {"model": str(ROOT / "models" / "so101_pick_mlp.onnx")}
 EPISODES = "3"
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _openral(*args: str) -> list[str]:
@@ -41,7 +35,7 @@ def receiver() -> Iterator[OTLPReceiver]:
 
 @pytest.fixture(scope="module")
 def served(receiver: OTLPReceiver) -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = free_endpoint()
     server = subprocess.Popen(
         _openral(
             "serve",
@@ -123,7 +117,7 @@ def test_a_served_policy_gives_the_robot_what_the_local_one_would_in_one_trace(s
 def test_the_shipped_remote_deployment_runs_the_twin_on_a_served_chunking_policy(tmp_path: Path):
     import yaml  # noqa: PLC0415
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = free_endpoint()
     deployment = yaml.safe_load((ROOT / "deployments" / "so101_twin_remote.yaml").read_text(encoding="utf-8"))
     deployment["vla"]["params"]["zenoh"]["connect"] = [endpoint]
     path = tmp_path / "remote.yaml"

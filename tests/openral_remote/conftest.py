@@ -1,6 +1,5 @@
 import os
 import signal
-import socket
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -9,13 +8,7 @@ import pytest
 
 from openral_remote.config import ZenohConfig
 from openral_remote.keys import PolicyKeys
-from openral_remote.testing import POLICY, ROBOT
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+from openral_remote.testing import POLICY, ROBOT, free_endpoint
 
 
 class ServerProcess:
@@ -58,7 +51,7 @@ class ServerProcess:
 
 @pytest.fixture
 def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
+    return free_endpoint()
 
 
 @pytest.fixture

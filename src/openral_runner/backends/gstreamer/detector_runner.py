@@ -12,20 +12,15 @@ import itertools
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import structlog
 
 from openral_core import ROSRuntimeError
 from openral_core.perception import ObjectsMetadata
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.backends.gstreamer.detector_factory import build_manifest_detector
+from openral_runner.backends.gstreamer.gst import Gst, bgr_copy
 from openral_runner.backends.gstreamer.pipeline import TEE_NAME
 from openral_runner.backends.gstreamer.tee_manager import BranchHandle, TeeManager
-
-try:
-    from gi.repository import Gst  # tee_manager (imported above) checked gi and initialised GStreamer
-except ImportError as exc:  # pragma: no cover - tee_manager raised first
-    raise ROSRuntimeError("GStreamer is not importable") from exc
 
 _log = structlog.get_logger(__name__)
 _ids = itertools.count()
@@ -94,19 +89,11 @@ class DetectorRunner:
         if sample is None:
             return Gst.FlowReturn.OK
         try:
-            structure = sample.get_caps().get_structure(0)
-            width, height = structure.get_value("width"), structure.get_value("height")
-            buffer = sample.get_buffer()
-            ok, mapped = buffer.map(Gst.MapFlags.READ)
-            if not ok:
+            frame = bgr_copy(sample)
+            if frame is None:
                 return Gst.FlowReturn.OK
-            try:
-                stride = len(mapped.data) // height
-                frame = np.frombuffer(mapped.data, dtype=np.uint8).reshape(height, stride)[:, : width * 3]
-                frame = frame.reshape(height, width, 3).copy()  # the buffer goes back to its pool
-            finally:
-                buffer.unmap(mapped)
             self.frames += 1
+            height, width = frame.shape[:2]
             found = self.detector.detect(frame, width, height, self.sensor_id)
             if found is not None:
                 self.on_detection(found)

@@ -246,6 +246,11 @@ class PerceptionEventPublisher:
         return self._thread is not None
 
     @property
+    def dropped_counts(self) -> dict[tuple[str, str], int]:
+        """A copy of :attr:`dropped`: frames not looked at, by (sensor, kind) or (sensor, ``superseded``)."""
+        return dict(self.dropped)
+
+    @property
     def waiting(self) -> int:
         """Frames handed over that the worker has not taken yet."""
         return len(self._slots)

@@ -42,12 +42,12 @@ import structlog
 from openral_core import (
     FrameEncoding,
     ROSConfigError,
-    ROSDependencyMissing,
     ROSError,
     ROSRuntimeError,
     SensorFrame,
     SensorReaderConfig,
 )
+from openral_runner.backends.gstreamer.gst import GLib, GObject, Gst, GstApp, GstVideo, bgr_copy
 from openral_runner.backends.gstreamer.params import refield, settings_from_config
 from openral_runner.backends.gstreamer.perception_tee import PerceptionEventPublisher
 from openral_runner.backends.gstreamer.pipeline import (
@@ -60,23 +60,6 @@ from openral_runner.backends.gstreamer.pipeline import (
 )
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
 from openral_runner.perception import build_publisher
-
-try:
-    import gi
-
-    gi.require_version("Gst", "1.0")
-    gi.require_version("GstApp", "1.0")
-    gi.require_version("GstVideo", "1.0")
-    from gi.repository import GLib, GObject, Gst, GstApp, GstVideo
-except ImportError as exc:  # pragma: no cover - exercised only without the extra
-    raise ROSDependencyMissing("gi", extra="gstreamer", needed_for="the gstreamer sensor backend") from exc
-except ValueError as exc:  # pragma: no cover - gi present, typelibs missing
-    raise ROSConfigError(
-        f"the gstreamer sensor backend needs the GStreamer introspection data: {exc}",
-        hint="apt-get install gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0",
-    ) from exc
-
-Gst.init(None)
 
 _log = structlog.get_logger(__name__)
 
@@ -412,19 +395,9 @@ class GStreamerSensorReader(SlotReader):
         if sample is None or events is None:
             return Gst.FlowReturn.OK
         arrival_ns = time.monotonic_ns()
-        structure = sample.get_caps().get_structure(0)
-        width, height = structure.get_value("width"), structure.get_value("height")
-        buffer = sample.get_buffer()
-        ok, mapped = buffer.map(Gst.MapFlags.READ)
-        if not ok:
-            return Gst.FlowReturn.OK
-        try:
-            stride = len(mapped.data) // height
-            rows = np.frombuffer(mapped.data, dtype=np.uint8).reshape(height, stride)[:, : width * 3]
-            frame = rows.reshape(height, width, 3).copy()  # the buffer goes back to its pool
-        finally:
-            buffer.unmap(mapped)
-        events.submit(frame, self.sensor_id, self._capture_stamp(sample, buffer, sink, arrival_ns))
+        frame = bgr_copy(sample)
+        if frame is not None:
+            events.submit(frame, self.sensor_id, self._capture_stamp(sample, sample.get_buffer(), sink, arrival_ns))
         return Gst.FlowReturn.OK
 
     def _frame_from_sample(self, sample: Any, sink: Any, arrival_ns: int) -> SensorFrame:

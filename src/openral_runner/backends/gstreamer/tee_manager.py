@@ -17,23 +17,9 @@ from typing import Any, Final
 
 import structlog
 
-from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError
+from openral_core import ROSConfigError, ROSRuntimeError
+from openral_runner.backends.gstreamer.gst import Gst
 from openral_runner.backends.gstreamer.pipeline import LEAKY_BRANCH_QUEUE, TEE_NAME
-
-try:
-    import gi
-
-    gi.require_version("Gst", "1.0")
-    from gi.repository import Gst
-except ImportError as exc:  # pragma: no cover - exercised only without the extra
-    raise ROSDependencyMissing("gi", extra="gstreamer", needed_for="attaching branches to a camera tee") from exc
-except ValueError as exc:  # pragma: no cover - gi present, typelibs missing
-    raise ROSConfigError(
-        f"attaching branches needs the GStreamer introspection data: {exc}",
-        hint="apt-get install gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0",
-    ) from exc
-
-Gst.init(None)
 
 _log = structlog.get_logger(__name__)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 
@@ -45,6 +44,7 @@ zenoh = pytest.importorskip("zenoh", reason="needs the 'remote' extra")
 
 from openral_remote.config import ZenohConfig  # noqa: E402
 from openral_remote.session import open_session  # noqa: E402
+from openral_remote.testing import free_endpoint  # noqa: E402
 from openral_runner.backends.reward.client import (  # noqa: E402
     RewardMonitor,
     RewardTimeout,
@@ -52,12 +52,6 @@ from openral_runner.backends.reward.client import (  # noqa: E402
     sidecar_reply,
     sidecar_request,
 )
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 class FakeSidecar:
@@ -89,7 +83,7 @@ class FakeSidecar:
 
 @pytest.fixture
 def sidecar_and_monitor():
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = free_endpoint()
     sidecar = FakeSidecar(endpoint, reward_key("so101", "fake_reward"))
     monitor = RewardMonitor(
         model_id="fake_reward", robot="so101", zenoh=ZenohConfig(connect=[endpoint]), deadline_s=0.5
@@ -148,7 +142,7 @@ def test_bad_clips_are_refused_before_anything_is_sent(sidecar_and_monitor):
 
 def test_without_a_sidecar_a_request_fails_fast():
     monitor = RewardMonitor(
-        model_id="nobody", robot="so101", zenoh=ZenohConfig(connect=[f"tcp/127.0.0.1:{_free_port()}"]), deadline_s=2
+        model_id="nobody", robot="so101", zenoh=ZenohConfig(connect=[free_endpoint()]), deadline_s=2
     )
     try:
         started = time.perf_counter()
@@ -166,9 +160,7 @@ def test_a_reward_manifest_builds_its_monitor_and_other_kinds_are_refused():
     manifest = RSkillManifest(
         name="progress_model", kind="reward", license="Apache-2.0", reward={"success_threshold": 0.7, "deadline_s": 1}
     )
-    monitor = build_reward_monitor(
-        manifest, robot="so101", zenoh=ZenohConfig(connect=[f"tcp/127.0.0.1:{_free_port()}"])
-    )
+    monitor = build_reward_monitor(manifest, robot="so101", zenoh=ZenohConfig(connect=[free_endpoint()]))
     try:
         assert monitor.key == "openral/so101/reward/progress_model/score"
         assert monitor.success_threshold == 0.7

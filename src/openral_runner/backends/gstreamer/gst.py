@@ -1,0 +1,52 @@
+"""GStreamer through PyGObject, imported and initialised once, with errors that name the fix.
+
+Every module of this package that touches a live pipeline imports ``Gst`` (and friends) from
+here, so the import checks, the version pins and ``Gst.init`` live in one place.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from openral_core import ROSConfigError, ROSDependencyMissing
+
+try:
+    import gi
+
+    gi.require_version("Gst", "1.0")
+    gi.require_version("GstApp", "1.0")
+    gi.require_version("GstVideo", "1.0")
+    from gi.repository import GLib, GObject, Gst, GstApp, GstVideo
+except ImportError as exc:  # pragma: no cover - exercised only without the extra
+    raise ROSDependencyMissing("gi", extra="gstreamer", needed_for="GStreamer cameras and branches") from exc
+except ValueError as exc:  # pragma: no cover - gi present, typelibs missing
+    raise ROSConfigError(
+        f"GStreamer cameras need the GStreamer introspection data: {exc}",
+        hint="apt-get install gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0",
+    ) from exc
+
+Gst.init(None)
+
+
+def bgr_copy(sample: Any) -> np.ndarray | None:
+    """A BGR sample's pixels as an ``(H, W, 3)`` array of its own (the buffer goes back to its pool).
+
+    Padded rows are cut to the width. ``None`` when the buffer cannot be mapped.
+    """
+    structure = sample.get_caps().get_structure(0)
+    width, height = structure.get_value("width"), structure.get_value("height")
+    buffer = sample.get_buffer()
+    ok, mapped = buffer.map(Gst.MapFlags.READ)
+    if not ok:
+        return None
+    try:
+        stride = len(mapped.data) // height
+        rows = np.frombuffer(mapped.data, dtype=np.uint8).reshape(height, stride)[:, : width * 3]
+        return rows.reshape(height, width, 3).copy()
+    finally:
+        buffer.unmap(mapped)
+
+
+__all__ = ["GLib", "GObject", "Gst", "GstApp", "GstVideo", "bgr_copy"]

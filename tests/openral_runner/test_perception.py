@@ -1,0 +1,85 @@
+"""The perception observer: built from a deployment's params, fed by reference from the tick, colour order kept."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from openral_core import FrameEncoding, ROSConfigError, SensorFrame, TickResult, WorldState
+from openral_core.perception import PerceptionEvent
+from openral_runner.perception import PerceptionObserver, bgr_view
+
+pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+class Robot:
+    robot_id = "so101_follower"
+
+
+class ListSink:
+    def __init__(self) -> None:
+        self.events: list[PerceptionEvent] = []
+        self.arrived = threading.Event()
+
+    def publish(self, event: PerceptionEvent) -> None:
+        self.events.append(event)
+        self.arrived.set()
+
+    def close(self) -> None:
+        return
+
+
+def _manifest(tmp_path: Path) -> Path:
+    (tmp_path / "cube_detector.onnx").write_bytes((ROOT / "models" / "cube_detector.onnx").read_bytes())
+    path = tmp_path / "cube.rskill.yaml"
+    path.write_text(
+        "name: cube\nkind: detector\nlicense: Apache-2.0\ndetector: {model: cube_detector.onnx, labels: [cube]}\n",
+        encoding="utf-8",
+    )
+    return path
+
+
+def test_a_detector_manifest_runs_on_the_frames_of_each_tick_in_their_colour_order(tmp_path):
+    manifest = _manifest(tmp_path)
+    observer = PerceptionObserver.from_config(
+        {"detector_manifest": manifest.name, "motion": {}, "rate_hz": 100},
+        robot=Robot(),
+        env=None,
+        base_dir=tmp_path,
+    )
+    sink = ListSink()
+    observer.publisher.sinks.append(sink)
+    assert [d.kind for d in observer.publisher.detectors] == ["motion", "objects"]
+    rgb = np.zeros((120, 160, 3), dtype=np.uint8)
+    rgb[...] = (40, 60, 90)  # RGB dark blue
+    rgb[40:70, 60:100] = (210, 90, 200)  # RGB magenta: the cube only if the channels are read right
+    frame = SensorFrame(sensor_id="front", stamp_ns=5, width=160, height=120, encoding="rgb8", data=rgb)
+    world = WorldState(stamp_ns=5, image_frames={"front": frame})
+    try:
+        observer.on_tick(TickResult(tick_idx=0), world)
+        assert sink.arrived.wait(10)
+    finally:
+        observer.close()
+    objects = [e for e in sink.events if e.kind == "objects"]
+    assert objects, sink.events
+    box = objects[0].metadata.detections[0].box  # type: ignore[union-attr]
+    assert box.iou(type(box)(x0=60, y0=40, x1=100, y1=70)) > 0.8
+
+
+def test_frames_are_viewed_as_bgr_without_a_copy():
+    rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
+    view = bgr_view(rgb, FrameEncoding.RGB8)
+    assert view is not None
+    assert np.shares_memory(view, rgb)
+    assert (view[..., 0] == rgb[..., 2]).all()
+    assert bgr_view(rgb, FrameEncoding.JPEG) is None
+
+
+def test_no_detector_is_a_configuration_error():
+    with pytest.raises(ROSConfigError, match="no detector"):
+        PerceptionObserver.from_config({"rate_hz": 5}, robot=Robot(), env=None)
