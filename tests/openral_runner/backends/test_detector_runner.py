@@ -64,13 +64,11 @@ def test_kinds_carry_their_own_block_only():
         build_manifest_detector(policy)
 
 
-pytest.importorskip(
-    "gi", reason="needs GStreamer and PyGObject: run scripts/install-system-deps.sh, then uv sync --extra gstreamer"
-)
-
-
 @pytest.mark.gstreamer
 def test_the_detector_runs_on_a_live_branch_and_finds_the_magenta_ball(tmp_path):
+    pytest.importorskip(
+        "gi", reason="needs GStreamer and PyGObject: run scripts/install-system-deps.sh, then uv sync --extra gstreamer"
+    )
     try:
         runner_module = importlib.import_module("openral_runner.backends.gstreamer.detector_runner")
     except ROSConfigError as exc:
