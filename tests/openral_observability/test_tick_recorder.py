@@ -174,4 +174,5 @@ def test_with_nothing_installed_a_tick_records_nothing() -> None:
         [sys.executable, "-c", QUIET_RUN], env=env, capture_output=True, text=True, timeout=120, check=False
     )
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.split() == ["QuietTickTelemetry", "50", "0"]
+    # The last line is the result; a late tick under load may log a warning before it.
+    assert proc.stdout.strip().splitlines()[-1].split() == ["QuietTickTelemetry", "50", "0"]
