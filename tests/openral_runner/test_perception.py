@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from openral_core import FrameEncoding, ROSConfigError, SensorFrame, TickResult, WorldState
-from openral_core.perception import PerceptionEvent
 from openral_runner.perception import PerceptionObserver, bgr_view
+from openral_runner.testing import RecordingEventSink
 
 pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
 
@@ -19,19 +18,6 @@ ROOT = Path(__file__).resolve().parents[2]
 
 class Robot:
     robot_id = "so101_follower"
-
-
-class ListSink:
-    def __init__(self) -> None:
-        self.events: list[PerceptionEvent] = []
-        self.arrived = threading.Event()
-
-    def publish(self, event: PerceptionEvent) -> None:
-        self.events.append(event)
-        self.arrived.set()
-
-    def close(self) -> None:
-        return
 
 
 def _manifest(tmp_path: Path) -> Path:
@@ -52,7 +38,7 @@ def test_a_detector_manifest_runs_on_the_frames_of_each_tick_in_their_colour_ord
         env=None,
         base_dir=tmp_path,
     )
-    sink = ListSink()
+    sink = RecordingEventSink()
     observer.publisher.sinks.append(sink)
     assert [d.kind for d in observer.publisher.detectors] == ["motion", "objects"]
     rgb = np.zeros((120, 160, 3), dtype=np.uint8)

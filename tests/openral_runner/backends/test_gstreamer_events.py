@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import importlib
-import threading
 import time
 
 import pytest
 
 from openral_core import ROSConfigError, SensorReaderConfig
-from openral_core.perception import PerceptionEvent
 from openral_runner.backends.gstreamer.perception_tee import MotionDetector, PerceptionEventPublisher
 
 pytestmark = pytest.mark.gstreamer
@@ -23,25 +21,13 @@ except ROSConfigError as exc:  # gi present, GStreamer typelibs missing
     pytest.skip(f"GStreamer introspection data missing: {exc}", allow_module_level=True)
 
 from openral_runner.backends.gstreamer.pipeline import PipelineSpec  # noqa: E402
+from openral_runner.testing import RecordingEventSink  # noqa: E402
 
 GStreamerSensorReader = reader_module.GStreamerSensorReader
 
 
-class ListSink:
-    def __init__(self) -> None:
-        self.events: list[PerceptionEvent] = []
-        self.arrived = threading.Event()
-
-    def publish(self, event: PerceptionEvent) -> None:
-        self.events.append(event)
-        self.arrived.set()
-
-    def close(self) -> None:
-        return
-
-
 def test_the_event_leg_feeds_the_detectors_and_the_policy_leg_keeps_its_rate():
-    sink = ListSink()
+    sink = RecordingEventSink()
     publisher = PerceptionEventPublisher([MotionDetector()], [sink], rate_hz=10.0)
     spec = PipelineSpec(
         source="testsrc", pattern="ball", width=160, height=120, fps=30, enable_event_tee=True, event_rate_hz=10

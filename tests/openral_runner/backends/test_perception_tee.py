@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -11,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from openral_core import ROSConfigError
-from openral_core.perception import MotionMetadata, PerceptionEvent, SceneChangeMetadata
+from openral_core.perception import MotionMetadata, SceneChangeMetadata
 from openral_runner.backends.gstreamer.perception_tee import (
     MotionDetector,
     PerceptionEventPublisher,
@@ -19,6 +18,7 @@ from openral_runner.backends.gstreamer.perception_tee import (
     TokenBucket,
     grey_levels,
 )
+from openral_runner.testing import RecordingEventSink
 
 H, W = 48, 64
 
@@ -127,24 +127,10 @@ class CountingDetector:
         return "counted"
 
 
-class ListSink:
-    def __init__(self) -> None:
-        self.events: list[PerceptionEvent] = []
-        self.closed = False
-        self.arrived = threading.Event()
-
-    def publish(self, event: PerceptionEvent) -> None:
-        self.events.append(event)
-        self.arrived.set()
-
-    def close(self) -> None:
-        self.closed = True
-
-
 def test_the_rate_limit_comes_before_the_detector_runs():
     now = [0.0]
     detector = CountingDetector()
-    sink = ListSink()
+    sink = RecordingEventSink()
     publisher = PerceptionEventPublisher([detector], [sink], rate_hz=2.0, now=lambda: now[0])
     frame = grey_frame(10)
     for _ in range(10):
@@ -162,7 +148,7 @@ def test_the_rate_limit_comes_before_the_detector_runs():
 def test_the_worker_takes_the_newest_frame_and_stop_closes_the_sinks(telemetry):
     from openral_observability import semconv  # noqa: PLC0415
 
-    sink = ListSink()
+    sink = RecordingEventSink()
     publisher = PerceptionEventPublisher([SceneChangeDetector()], [sink], rate_hz=1000.0, burst=10)
     publisher.submit(grey_frame(0), "cam", 1)  # not started: both wait in one slot, the newer wins
     publisher.submit(grey_frame(200), "cam", 2)
