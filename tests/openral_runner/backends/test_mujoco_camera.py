@@ -203,6 +203,9 @@ def test_moving_the_arm_changes_the_image_where_the_arm_is(
     deadline = time.monotonic() + 5.0
     while abs(twin.read_state().positions[0] - 1.2) > 0.02 and time.monotonic() < deadline:
         time.sleep(0.02)
+    # Settled, not just arrived: the frame and the gripper's projection must show the same pose.
+    while abs((twin.read_state().velocities or [0.0])[0]) > 0.05 and time.monotonic() < deadline:
+        time.sleep(0.02)
     moved_ns = time.monotonic_ns()
     after = _next_frame(camera, moved_ns)
     ee_after = _project(twin, "gripperframe", "front", width, height)
