@@ -10,6 +10,7 @@ from contextlib import contextmanager
 import click
 
 from openral_core import ROSConfigError, ROSError
+from openral_core.errors import one_line
 
 EXIT_OK = 0
 EXIT_RUNTIME = 1
@@ -43,8 +44,3 @@ def exit_codes(debug: bool, echo: Callable[[str], None] | None = None) -> Iterat
             traceback.print_exc(file=sys.stderr)
         say(f"error: unexpected {type(exc).__name__}: {one_line(str(exc))} (run with --debug for the traceback)")
         raise SystemExit(EXIT_RUNTIME) from None
-
-
-def one_line(text: str) -> str:
-    """``text`` on one line: line breaks and other control characters are written as escapes."""
-    return "".join(ch if ch.isprintable() or ch == " " else ascii(ch)[1:-1] for ch in text)

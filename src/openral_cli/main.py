@@ -43,7 +43,7 @@ from openral_hal.manifests import load_robot_manifest
 from openral_observability import semconv
 from openral_observability.logs import OTelLogBridge, add_trace_ids
 from openral_observability.setup import PROTOCOLS
-from openral_runner.factory import build_runner
+from openral_runner.factory import check_deployment
 
 FOXGLOVE_DEFAULT_PORT = 8765
 """Foxglove's conventional WebSocket port."""
@@ -265,6 +265,7 @@ def _deploy(
             bridge = importlib.import_module("openral_runner.bridges.foxglove")
             sink = bridge.FoxgloveSink(port=foxglove_port)
             made.callback(sink.close)
+            sink.start()  # bound now, so the address can be printed before the robot starts
             observers.append(sink)
             if sink.port is not None and not quiet:
                 click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
@@ -292,11 +293,10 @@ def _deploy(
 @click.argument("config_path", metavar="FILE", type=click.Path(path_type=Path))
 @click.pass_context
 def validate(ctx: click.Context, config_path: Path) -> None:
-    """Check a deployment file: schema, plugins, robot, skill parameters. Touches no hardware."""
+    """Check a deployment file: schema, plugins, robot, parameters, files. Connects, listens and moves nothing."""
     with exit_codes(bool(ctx.obj["debug"])):
         env = RobotEnvironment.from_yaml(config_path)
-        _runner, skill = build_runner(env, base_dir=config_path.parent)
-        skill.shutdown()
+        check_deployment(env, base_dir=config_path.parent)
         click.echo(
             f"ok: {config_path} — robot {env.hal.robot_id} via {env.hal.adapter}, skill {env.vla.id}, "
             f"{len(env.sensors)} sensor(s), {env.rate_hz:g} Hz, safety {env.safety.client}"

@@ -77,6 +77,42 @@ def resolve_user_path(value: str | os.PathLike[str], base_dir: Path | None = Non
     return path
 
 
+def is_regular_file(path: Path) -> bool:
+    """Whether ``path`` is a regular file; ``False`` for any path that cannot be one (a name too long)."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
+
+
+def require_user_file(
+    value: str | os.PathLike[str],
+    base_dir: Path | None = None,
+    *,
+    field: str | None = None,
+    what: str = "file",
+    hint: str = "check the path; a relative one is taken from the deployment file's folder",
+) -> Path:
+    """The regular file a user names, resolved as :func:`resolve_user_path`; it must exist now.
+
+    Any path that cannot be a file is a configuration error naming ``field``: missing, a directory
+    or device, a name longer than the file system allows, a component that is not a folder.
+
+    Raises:
+        ROSConfigError: ``value`` does not name a readable regular file.
+    """
+    path = resolve_user_path(value, base_dir, field=field)
+    try:
+        info = os.stat(path)
+    except FileNotFoundError as exc:
+        raise ROSConfigError(f"{what} not found: {path}", field=field, hint=hint) from exc
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise ROSConfigError(f"{what} {str(path)[:120]!r} cannot be a file: {reason}", field=field, hint=hint) from exc
+    _refuse_irregular(path, field, info)
+    return path
+
+
 def read_config_file(
     path: str | os.PathLike[str],
     *,

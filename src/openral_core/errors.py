@@ -12,6 +12,17 @@ if TYPE_CHECKING:
     from openral_core.results import RunResult, TickResult
 
 
+def one_line(text: str) -> str:
+    """``text`` on one line: line breaks and other control characters are written as escapes.
+
+    Messages echo what a user wrote (a value, a key, a path); a newline or a terminal escape in it
+    must neither split an error over several lines nor reach the terminal raw.
+    """
+    if text.isprintable():
+        return text
+    return "".join(ch if ch.isprintable() or ch == " " else ascii(ch)[1:-1] for ch in text)
+
+
 class ROSError(Exception):
     """Base of every openral error."""
 
@@ -31,7 +42,7 @@ class ROSConfigError(ROSError):
         text = f"{field}: {message}" if field else message
         if hint:
             text = f"{text} ({hint})"
-        super().__init__(text)
+        super().__init__(one_line(text))
 
 
 class ROSDependencyMissing(ROSConfigError):

@@ -6,6 +6,13 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+MAX_MODEL_INPUT_SIDE = 8192
+"""Largest side of a detector's input accepted from a configuration: far above any real model."""
+
+ModelInputSide = Annotated[int, Field(ge=1, le=MAX_MODEL_INPUT_SIDE)]
+ModelInputSize = tuple[ModelInputSide, ModelInputSide]
+"""A detector model's ``(height, width)`` in pixels, each side 1 to :data:`MAX_MODEL_INPUT_SIDE`."""
+
 
 class PixelBox(BaseModel):
     """An axis-aligned box in pixels: ``x0 <= x1``, ``y0 <= y1``, corners inclusive of the area covered."""

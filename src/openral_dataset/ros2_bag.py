@@ -19,6 +19,7 @@ crash has no summary but stays readable by a streaming reader, up to its last me
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from collections.abc import Mapping
@@ -63,19 +64,41 @@ class Ros2BagWriter(QueuedObserver):
     """Writes every tick, episode boundary and camera thumbnail of a run into one ROS 2 MCAP bag.
 
     Args:
-        path: The ``.mcap`` file to create.
+        path: The ``.mcap`` file, created by :meth:`start`.
         joint_names: The robot's joints (names of the command messages).
         deployment: The deployment file, attached to the bag.
         overwrite: Replace an existing file instead of refusing.
+        field: The option or field that named the file, for errors.
 
     Raises:
-        ROSConfigError: The file exists (without ``overwrite``) or cannot be created.
+        ROSConfigError: The file exists (without ``overwrite``) or its folder is missing or read-only.
     """
 
     def __init__(
-        self, path: Path, *, joint_names: list[str], deployment: Path | None = None, overwrite: bool = False
+        self,
+        path: Path,
+        *,
+        joint_names: list[str],
+        deployment: Path | None = None,
+        overwrite: bool = False,
+        field: str = "--mcap",
     ) -> None:
-        self._init(path, joint_names=joint_names, deployment=deployment, overwrite=overwrite)
+        _check_target(path, overwrite=overwrite, field=field)
+        self.path = path
+        self.joint_names = list(joint_names)
+        self._overwrite = overwrite
+        self._deployment = deployment
+        self._field = field
+        self._file: IO[bytes] | None = None
+        self._writer: Writer | None = None
+        self._store = get_typestore(Stores.ROS2_HUMBLE)
+        self._offset_ns = time.time_ns() - time.monotonic_ns()
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._sequence = 0
+        self._thumbs: dict[str, Thumbnail] = {}
+        self._thumb_lock = threading.Lock()
+        self.messages = 0
         super().__init__(name="openral-rosbag", max_queue=4096)
 
     @classmethod
@@ -86,41 +109,43 @@ class Ros2BagWriter(QueuedObserver):
         folder) and ``overwrite``. Camera images come from the runner's thumbnails (``thumbnail_hz``).
 
         Raises:
-            ROSConfigError: A wrong parameter, or the file cannot be created.
+            ROSConfigError: A wrong parameter, or the file could not be created there.
         """
         config = validate_model(Ros2BagParams, dict(params), field_prefix="observers[].params")
-        path = resolve_user_path(config.path, base_dir, field="observers[].params.path")
-        return cls(path, joint_names=robot.joint_names, overwrite=config.overwrite)
+        field = "observers[].params.path"
+        path = resolve_user_path(config.path, base_dir, field=field)
+        return cls(path, joint_names=robot.joint_names, overwrite=config.overwrite, field=field)
 
-    def _init(self, path: Path, *, joint_names: list[str], deployment: Path | None, overwrite: bool) -> None:
+    def start(self) -> None:
+        """Create the file and write the bag's header (the runner calls this at activation). Idempotent.
+
+        Building the writer only checks that the file could be created, so validating a
+        deployment never creates, truncates or takes a bag's name.
+
+        Raises:
+            ROSConfigError: The file exists now (without ``overwrite``) or cannot be created.
+        """
+        if self._file is not None:
+            return
         try:
-            self._file: IO[bytes] = open(path, "wb" if overwrite else "xb")  # noqa: SIM115  (closed in handle_close)
+            self._file = open(self.path, "wb" if self._overwrite else "xb")  # noqa: SIM115  (closed in handle_close)
         except OSError as exc:
             raise ROSConfigError(
-                f"cannot create the ROS 2 bag {path}: {exc}",
-                field="--mcap",
+                f"cannot create the ROS 2 bag {self.path}: {exc}",
+                field=self._field,
                 hint="choose a new file in a writable folder",
             ) from exc
-        self.path = path
-        self.joint_names = list(joint_names)
-        self._store = get_typestore(Stores.ROS2_HUMBLE)
         self._offset_ns = time.time_ns() - time.monotonic_ns()
         self._writer = Writer(self._file)
         self._writer.start(profile="ros2", library="openral")
-        self._schemas: dict[str, int] = {}
-        self._channels: dict[str, int] = {}
-        self._sequence = 0
-        self._thumbs: dict[str, Thumbnail] = {}
-        self._thumb_lock = threading.Lock()
-        self.messages = 0
-        if deployment is not None:
+        if self._deployment is not None:
             now = time.time_ns()
             self._writer.add_attachment(
                 create_time=now,
                 log_time=now,
-                name=deployment.name,
+                name=self._deployment.name,
                 media_type="application/yaml",
-                data=deployment.read_bytes(),
+                data=self._deployment.read_bytes(),
             )
 
     # -- observer hooks ----------------------------------------------------------------------
@@ -166,6 +191,8 @@ class Ros2BagWriter(QueuedObserver):
         self._write(TOPIC_EPISODE, STRING, self._string(record), now)
 
     def handle_close(self) -> None:
+        if self._file is None or self._writer is None:  # never started: no file was created
+            return
         try:
             self._write_thumbnails(time.time_ns())  # the last ones, handed over after the last tick
             self._writer.finish()  # type: ignore[no-untyped-call]
@@ -175,6 +202,8 @@ class Ros2BagWriter(QueuedObserver):
     # -- messages ----------------------------------------------------------------------------
 
     def _write(self, topic: str, msgtype: str, message: Any, log_ns: int) -> None:
+        if self._writer is None:
+            raise RuntimeError("the ROS 2 bag was not started")  # the runner starts observers before ticking
         channel = self._channels.get(topic)
         if channel is None:
             schema = self._schemas.get(msgtype)
@@ -250,3 +279,17 @@ def _tick_record(tick: TickResult) -> dict[str, Any]:
         },
     )
     return {k: v for k, v in record.items() if v is not None}
+
+
+def _check_target(path: Path, *, overwrite: bool, field: str) -> None:
+    """Refuse now what creating the bag at start would refuse: an existing file, a missing or read-only folder."""
+    hint = "choose a new file in a writable folder"
+    if not overwrite and (path.exists() or path.is_symlink()):
+        raise ROSConfigError(f"cannot create the ROS 2 bag {path}: the file exists", field=field, hint=hint)
+    folder = path.parent
+    if not folder.is_dir():
+        raise ROSConfigError(f"cannot create the ROS 2 bag {path}: no folder {folder}", field=field, hint=hint)
+    if path.is_dir():
+        raise ROSConfigError(f"cannot create the ROS 2 bag {path}: it is a folder", field=field, hint=hint)
+    if not os.access(folder, os.W_OK):
+        raise ROSConfigError(f"cannot create the ROS 2 bag {path}: {folder} is not writable", field=field, hint=hint)

@@ -7,15 +7,21 @@ a plain JSON value (numbers, text, lists). Decoding trusts nothing: the magic, t
 shape, every dtype (numbers and booleans only: object, void and text arrays are refused, so nothing
 can smuggle code or pointers), and that every array lies inside the payload and has exactly the
 bytes its shape needs. Arrays are decoded as read-only views of the message, without a copy.
+Multi-byte numbers travel little-endian whatever the sender's byte order.
+
+Any input either decodes or raises :class:`WireFormatError`: integers are checked to be integers
+(``true`` is not a dimension), sizes are computed without overflow and bounded by what an array
+can address, and a header nested too deeply or holding numbers too long to parse is refused.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import math
 import struct
 from collections.abc import Mapping
-from typing import Any, Final
+from typing import Any, Final, TypeGuard
 
 import numpy as np
 
@@ -31,6 +37,8 @@ ALLOWED_DTYPES: Final = frozenset(
 """Array element types accepted on the wire: numbers and booleans, nothing that can hold an object."""
 
 _PREFIX = struct.Struct("<4sI")
+_MAX_ARRAY_BYTES: Final = np.iinfo(np.intp).max
+"""What one array may span, zero-size dimensions aside (numpy's own limit)."""
 
 
 class WireFormatError(ROSRuntimeError):
@@ -63,9 +71,10 @@ def encode(fields: Mapping[str, Any], *, jpeg: Mapping[str, int] | None = None) 
                     raise WireFormatError(
                         f"field {name!r}: arrays of {dtype} cannot be sent (numbers and booleans only)"
                     )
-                array = np.ascontiguousarray(value)
-                blob = array.data.cast("B")
-                entry = {"kind": "array", "dtype": dtype, "shape": list(array.shape)}
+                # Little-endian and C order; a flat view casts to bytes even with a zero-size dimension.
+                array = np.asarray(value, dtype=value.dtype.newbyteorder("<"), order="C")
+                blob = array.reshape(-1).data.cast("B")
+                entry = {"kind": "array", "dtype": dtype, "shape": list(value.shape)}
             entry.update(offset=offset, nbytes=len(blob))
             blobs.append(blob)
             offset += len(blob)
@@ -92,12 +101,13 @@ def decode(message: bytes | bytearray | memoryview) -> dict[str, Any]:
         raise WireFormatError(f"header of {header_len} bytes does not fit the message or the limit")
     try:
         header = json.loads(bytes(view[_PREFIX.size : _PREFIX.size + header_len]).decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except ValueError as exc:  # not UTF-8, not JSON, or an integer too long to convert
         raise WireFormatError(f"header is not JSON: {exc}") from None
-    if not isinstance(header, dict) or header.get("version") != SCHEMA_VERSION:
-        raise WireFormatError(
-            f"unsupported message version {header.get('version') if isinstance(header, dict) else None!r}"
-        )
+    except RecursionError:
+        raise WireFormatError("header is nested too deeply") from None
+    version = header.get("version") if isinstance(header, dict) else None
+    if not _is_int(version) or version != SCHEMA_VERSION:
+        raise WireFormatError(f"unsupported message version {version!r}")
     entries = header.get("fields")
     if not isinstance(entries, dict):
         raise WireFormatError("header has no field table")
@@ -113,30 +123,45 @@ def _field(name: str, entry: Any, payload: memoryview) -> Any:
         return entry.get("value")
     blob = _blob(name, entry, payload)
     shape = entry.get("shape")
-    if not isinstance(shape, list) or len(shape) > MAX_DIMS or not all(isinstance(d, int) and d >= 0 for d in shape):
-        raise WireFormatError(f"field {name!r}: bad shape {shape!r}")
+    if not isinstance(shape, list) or len(shape) > MAX_DIMS or not all(_is_int(d) and d >= 0 for d in shape):
+        raise WireFormatError(f"field {name!r}: bad shape {_brief(shape)}")
     if kind == "jpeg":
         return _from_jpeg(name, blob, shape)
     if kind != "array":
-        raise WireFormatError(f"field {name!r}: unknown kind {kind!r}")
+        raise WireFormatError(f"field {name!r}: unknown kind {_brief(kind)}")
     dtype = entry.get("dtype")
-    if dtype not in ALLOWED_DTYPES:
-        raise WireFormatError(f"field {name!r}: dtype {dtype!r} is refused (numbers and booleans only)")
-    itemsize = np.dtype(dtype).itemsize
-    if int(np.prod(shape, dtype=np.int64)) * itemsize != len(blob):
-        raise WireFormatError(f"field {name!r}: {len(blob)} bytes for shape {shape} of {dtype}")
-    array = np.frombuffer(blob, dtype=dtype).reshape(shape)
+    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+        raise WireFormatError(f"field {name!r}: dtype {_brief(dtype)} is refused (numbers and booleans only)")
+    wire_dtype = np.dtype(dtype).newbyteorder("<")
+    # Python integers: no product wraps. Zero-size dimensions aside, numpy caps an array's bytes.
+    if math.prod(d for d in shape if d) * wire_dtype.itemsize > _MAX_ARRAY_BYTES:
+        raise WireFormatError(f"field {name!r}: shape {_brief(shape)} is larger than any array")
+    if math.prod(shape) * wire_dtype.itemsize != len(blob):
+        raise WireFormatError(f"field {name!r}: {len(blob)} bytes for shape {_brief(shape)} of {dtype}")
+    array = np.frombuffer(blob, dtype=wire_dtype).reshape(shape)
     array.flags.writeable = False
     return array
 
 
+def _is_int(value: Any) -> TypeGuard[int]:
+    """A JSON integer (``true`` and ``false`` are not)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _brief(value: Any) -> str:
+    """``repr(value)`` cut short: error messages quote hostile input, so they bound it."""
+    text = repr(value)
+    return text if len(text) <= 80 else f"{text[:77]}..."
+
+
 def _blob(name: str, entry: dict[str, Any], payload: memoryview) -> memoryview:
     offset, nbytes = entry.get("offset"), entry.get("nbytes")
-    if not (isinstance(offset, int) and isinstance(nbytes, int)) or offset < 0 or nbytes < 0:
+    if not (_is_int(offset) and _is_int(nbytes)) or offset < 0 or nbytes < 0:
         raise WireFormatError(f"field {name!r}: bad offset or size")
     if offset + nbytes > len(payload):
         raise WireFormatError(
-            f"field {name!r}: bytes {offset}..{offset + nbytes} lie outside the {len(payload)}-byte payload"
+            f"field {name!r}: {_brief(nbytes)} bytes at offset {_brief(offset)} lie outside "
+            f"the {len(payload)}-byte payload"
         )
     return payload[offset : offset + nbytes]
 
@@ -162,13 +187,16 @@ def _jpeg_bytes(name: str, image: np.ndarray, quality: int) -> bytes:
 def _from_jpeg(name: str, blob: memoryview, shape: list[int]) -> np.ndarray:
     from PIL import Image  # noqa: PLC0415
 
+    if len(shape) != 3 or shape[2] != 3:
+        raise WireFormatError(f"field {name!r}: a JPEG image is (H, W, 3), not {_brief(shape)}")
     try:
-        with Image.open(io.BytesIO(bytes(blob))) as image:
-            if image.format != "JPEG":
-                raise WireFormatError(f"field {name!r}: not a JPEG image")
+        with Image.open(io.BytesIO(bytes(blob)), formats=["JPEG"]) as image:
+            # The header's size is known before any pixel is decoded: refuse a mismatch first.
+            if image.size != (shape[1], shape[0]):
+                raise WireFormatError(f"field {name!r}: JPEG of {image.size[::-1]} announced as {_brief(shape)}")
             pixels = np.asarray(image.convert("RGB"))
-    except OSError as exc:
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
         raise WireFormatError(f"field {name!r}: undecodable JPEG ({exc})") from None
     if list(pixels.shape) != shape:
-        raise WireFormatError(f"field {name!r}: JPEG of {list(pixels.shape)} announced as {shape}")
+        raise WireFormatError(f"field {name!r}: JPEG of {list(pixels.shape)} announced as {_brief(shape)}")
     return pixels

@@ -19,6 +19,9 @@ def event_key(robot: str, kind: str) -> str:
 class ZenohEventSink:
     """Publishes each event on its kind's key; publishers are declared on first use.
 
+    The session is opened by :meth:`open` (the publisher opens its sinks when it starts), so
+    building the sink, as ``openral validate`` does, neither listens nor connects.
+
     Args:
         zenoh: The session's settings.
         robot: The robot segment of the keys.
@@ -26,10 +29,24 @@ class ZenohEventSink:
 
     def __init__(self, zenoh: ZenohConfig, robot: str) -> None:
         self.robot = robot
-        self._session: Any = open_session(zenoh)
+        self.zenoh = zenoh
+        self._session: Any = None
         self._publishers: dict[str, Any] = {}
+        self._closed = False
+
+    def open(self) -> None:
+        """Open the session (listen, connect). Idempotent; building the sink opens nothing.
+
+        Raises:
+            ROSConfigError: An endpoint cannot be listened on.
+        """
+        if self._session is None and not self._closed:
+            self._session = open_session(self.zenoh)
 
     def publish(self, event: PerceptionEvent) -> None:
+        self.open()
+        if self._session is None:  # closed: a late event goes nowhere
+            return
         publisher = self._publishers.get(event.kind)
         if publisher is None:
             publisher = self._publishers[event.kind] = self._session.declare_publisher(
@@ -38,7 +55,8 @@ class ZenohEventSink:
         publisher.put(event.model_dump_json().encode("utf-8"))
 
     def close(self) -> None:
-        """Undeclare the publishers and close the session. Idempotent."""
+        """Undeclare the publishers and close the session; the sink stays closed. Idempotent."""
+        self._closed = True
         for publisher in self._publishers.values():
             publisher.undeclare()
         self._publishers = {}

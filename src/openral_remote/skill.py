@@ -58,6 +58,12 @@ class RemotePolicySkill(RSkillBase):
     def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> Self:
         return cls(robot, validate_params(RemotePolicyParams, params, skill_id=SKILL_ID), rate_hz=rate_hz)
 
+    @classmethod
+    def check_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> None:
+        """Check the parameters without asking the server: what it serves is known only once it answers."""
+        checked = validate_params(RemotePolicyParams, params, skill_id=SKILL_ID)
+        PolicyKeys.of(checked.robot or robot.robot_id, checked.policy)
+
     @property
     def info(self) -> RSkillInfo:
         return self._info

@@ -35,7 +35,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from time import perf_counter_ns
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 from opentelemetry import trace
 from pydantic import BaseModel
@@ -59,6 +59,20 @@ class RSkillPlugin(Protocol):
 
     def from_config(self, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> RSkillBase:
         """Build an ``UNCONFIGURED`` skill for ``robot`` stepped at ``rate_hz`` from its ``vla.params``."""
+        ...
+
+
+@runtime_checkable
+class OfflineConfigCheck(Protocol):
+    """A skill class whose building needs a peer (a policy server) and that can check its parameters without one.
+
+    ``openral validate`` calls :meth:`check_config` instead of ``from_config`` for such a class, so
+    validating a file never waits for, or connects to, anything. Every other skill is checked by
+    building it, which by the plugin convention loads files but opens no link.
+    """
+
+    def check_config(self, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> None:
+        """Raise ``ROSConfigError`` naming the field for whatever is wrong in ``params``, offline."""
         ...
 
 

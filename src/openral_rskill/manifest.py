@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 from openral_core.actions import ControlMode
 from openral_core.config import load_model_yaml
 from openral_core.errors import ROSConfigError, ROSLicenseError
+from openral_core.perception import ModelInputSize
 from openral_core.skills import RSkillInfo
 
 OPEN_LICENSES: frozenset[str] = frozenset(
@@ -56,7 +57,7 @@ class DetectorContract(BaseModel):
     runtime: Literal["onnx", "tensorrt", "pytorch"] = Field(default="onnx", description="What runs the model.")
     model: str | None = Field(default=None, description="The model file, relative to the manifest.")
     labels: list[str] = Field(min_length=1, description="Class names, in the model's class order.")
-    input_size: tuple[int, int] = Field(default=(640, 640), description="The model's (height, width).")
+    input_size: ModelInputSize = Field(default=(640, 640), description="The model's (height, width).")
     score_threshold: float = Field(default=0.5, ge=0, le=1)
     resize: Literal["stretch", "letterbox"] = "stretch"
     mode: Literal["continuous", "on_demand"] = Field(

@@ -28,6 +28,7 @@ from openral_core import (
     RSkillInfo,
     WorldState,
 )
+from openral_core.config_files import require_user_file
 from openral_rskill.anchoring import (
     AbsoluteAnchor,
     ActionRepresentation,
@@ -54,7 +55,7 @@ META_ACTION_SCALE = "openral.action_scale"
 class OnnxPolicyParams(BaseModel):
     """``params`` of the ``onnx_policy`` skill."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     model: str = Field(min_length=1, description="The .onnx file (relative to the working directory).")
     observation: list[str] | None = Field(
@@ -81,9 +82,9 @@ class OnnxPolicySkill(RSkillBase):
         self.robot = robot
         self.params = params
         self.names = robot.joint_names
-        path = Path(params.model).expanduser()
-        if not path.is_file():
-            raise ROSConfigError(f"no model file {path}", field="params.model", hint="give the path of a .onnx file")
+        path = require_user_file(
+            params.model, field="params.model", what="model file", hint="give the path of a .onnx file"
+        )
         if params.dt_s is not None and abs(params.dt_s * rate_hz - 1.0) > 1e-6:
             raise ROSConfigError(
                 f"the policy steps every {params.dt_s} s but the loop ticks at {rate_hz:g} Hz",

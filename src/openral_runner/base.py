@@ -46,7 +46,7 @@ from openral_observability.deferred import TickTelemetry
 from openral_observability.tick_recorder import TickRecorder
 from openral_runner.clock import Clock, SystemClock
 from openral_runner.gc_policy import BetweenTicksCollector
-from openral_runner.observer import TickObserver
+from openral_runner.observer import StartableObserver, TickObserver
 from openral_runner.stats import RunStats
 from openral_runner.tick_context import TickContext
 from openral_runner.tick_span import tick_span_attributes
@@ -138,12 +138,15 @@ class InferenceRunnerBase(ABC):
         return self._active
 
     def activate(self) -> None:
-        """Reset the tick counter, start the telemetry worker and mark the runner ready to tick.
+        """Reset the tick counter, start the observers and the telemetry worker, and mark the runner ready to tick.
 
         How ticks are recorded is decided here, once, from the installed OpenTelemetry providers
         (SDK ones: deferred to the worker; the API's no-op ones: recorded directly, for nothing).
         """
         self._tick_idx = 0
+        for observer in self.observers:
+            if isinstance(observer, StartableObserver):
+                observer.start()  # what building them left closed: ports, sessions
         self._recorder.activate()
         self._active = True
 

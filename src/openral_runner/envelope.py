@@ -20,7 +20,7 @@ from openral_core import (
     SafetyMode,
 )
 from openral_hal.kinematics import SiteChain, load_site_chain
-from openral_runner.safety import SafetyClient
+from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
 
 # Pull-back into the workspace box: stop within 0.1 mm of the boundary, or when the bracket on
 # the step is below 1/4096 of it, or after this many forward-kinematics evaluations.
@@ -29,7 +29,7 @@ _MIN_BRACKET = 1.0 / 4096
 _MAX_ITERATIONS = 16
 
 
-class EnvelopeSafetyClient(SafetyClient):
+class EnvelopeSafetyClient(SafetyClient, SafetyStateObserver, SafetyCommitListener):
     """Keeps joint-position commands inside the robot's limits, speed envelope and workspace box.
 
     * Control modes other than joint position, wrong joint sets and non-finite values are

@@ -24,10 +24,11 @@ from openral_core.plugins import (
 )
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.protocol import HAL
-from openral_rskill.base import RSkillBase
+from openral_rskill.base import OfflineConfigCheck, RSkillBase
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.clock import Clock
 from openral_runner.hardware import HardwareRunner
+from openral_runner.observer import TickObserver
 from openral_runner.safety import SafetyClient
 from openral_runner.sensor_reader import SensorReader
 from openral_world_state import WorldStateAggregator
@@ -76,25 +77,10 @@ def build_runner(
         ROSConfigError: An unknown plugin id, robot id, bad plugin parameters, or a rejected licence.
     """
     robot = load_robot_manifest(env.hal.robot_id)
-    skill_params = dict(env.vla.params)
-    if env.vla.manifest is not None:
-        manifest_path = resolve_user_path(env.vla.manifest, base_dir, field="vla.manifest")
-        rskill = RSkillManifest.from_yaml(manifest_path, accept_licenses=env.vla.accept_licenses)
-        rskill.check_compatible(robot.robot_id)
-        if rskill.kind != "policy":
-            raise ROSConfigError(f"manifest {manifest_path} is a {rskill.kind}, not a policy", field="vla.manifest")
-        if rskill.skill != env.vla.id:
-            raise ROSConfigError(
-                f"manifest {manifest_path} is for skill '{rskill.skill}', not '{env.vla.id}'",
-                field="vla.id",
-                hint=f"set vla.id: {rskill.skill}",
-            )
-        skill_params = rskill.merged_params(env.vla.params)
+    skill_params = _skill_params(env, robot, base_dir)
     hal: HAL = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
     skill: RSkillBase = SKILL_REGISTRY[env.vla.id].from_config(skill_params, robot=robot, rate_hz=env.rate_hz)
-    safety: SafetyClient = SAFETY_CLIENT_REGISTRY[env.safety.client].from_config(
-        env.safety, robot=robot, rate_hz=env.rate_hz
-    )
+    safety = _safety_client(env, robot)
     readers = [_build_reader(index, env, hal, robot, base_dir) for index, _ in enumerate(env.sensors)]
     aggregator_kwargs: dict[str, Any] = {
         "joint_max_age_ms": JOINT_STATE_MAX_AGE_TICKS * 1e3 / env.rate_hz,
@@ -123,10 +109,76 @@ def build_runner(
         action_names=robot.joint_names,
         fallback_skill=_fallback_skill(env, robot),
     )
+    runner.observers.extend(_build_observers(env, robot, base_dir))
+    return runner, skill
+
+
+def check_deployment(env: RobotEnvironment, *, base_dir: Path | None = None) -> None:
+    """Everything :func:`build_runner` checks, without connecting, listening or touching hardware.
+
+    What ``openral validate`` runs: plugins are resolved, parameters validated and files read; no
+    link is opened and no port bound. A skill whose building needs a peer (a policy server) checks
+    its parameters alone (:class:`~openral_rskill.base.OfflineConfigCheck`), and the parts are then
+    checked one by one instead of composed into a runner. Whatever was built is released again.
+
+    Raises:
+        ROSConfigError: What :func:`build_runner` would raise for the same file.
+    """
+    robot = load_robot_manifest(env.hal.robot_id)
+    skill_params = _skill_params(env, robot, base_dir)
+    skill_cls = SKILL_REGISTRY[env.vla.id]
+    if not isinstance(skill_cls, OfflineConfigCheck):
+        runner, skill = build_runner(env, base_dir=base_dir)
+        _release(skill, runner.fallback_skill, runner.observers)
+        return
+    skill_cls.check_config(skill_params, robot=robot, rate_hz=env.rate_hz)
+    hal: HAL = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
+    _safety_client(env, robot)
+    for index, _ in enumerate(env.sensors):
+        _build_reader(index, env, hal, robot, base_dir)
+    _release(None, _fallback_skill(env, robot), _build_observers(env, robot, base_dir))
+
+
+def _release(skill: RSkillBase | None, fallback: RSkillBase | None, observers: list[TickObserver]) -> None:
+    for built in (skill, fallback):
+        if built is not None:
+            built.shutdown()
+    for observer in observers:
+        observer.close()
+
+
+def _skill_params(env: RobotEnvironment, robot: RobotManifest, base_dir: Path | None) -> dict[str, Any]:
+    """The skill's parameters: the deployment's, over its rSkill manifest's defaults when it names one."""
+    if env.vla.manifest is None:
+        return dict(env.vla.params)
+    manifest_path = resolve_user_path(env.vla.manifest, base_dir, field="vla.manifest")
+    rskill = RSkillManifest.from_yaml(manifest_path, accept_licenses=env.vla.accept_licenses)
+    rskill.check_compatible(robot.robot_id)
+    if rskill.kind != "policy":
+        raise ROSConfigError(f"manifest {manifest_path} is a {rskill.kind}, not a policy", field="vla.manifest")
+    if rskill.skill != env.vla.id:
+        raise ROSConfigError(
+            f"manifest {manifest_path} is for skill '{rskill.skill}', not '{env.vla.id}'",
+            field="vla.id",
+            hint=f"set vla.id: {rskill.skill}",
+        )
+    return rskill.merged_params(env.vla.params)
+
+
+def _safety_client(env: RobotEnvironment, robot: RobotManifest) -> SafetyClient:
+    client: SafetyClient = SAFETY_CLIENT_REGISTRY[env.safety.client].from_config(
+        env.safety, robot=robot, rate_hz=env.rate_hz
+    )
+    return client
+
+
+def _build_observers(env: RobotEnvironment, robot: RobotManifest, base_dir: Path | None) -> list[TickObserver]:
+    """The ``observers:`` entries, built (they open nothing until the runner starts them)."""
+    observers: list[TickObserver] = []
     for index, spec in enumerate(env.observers):
         observer_cls = OBSERVER_REGISTRY.resolve(spec.id, field=f"observers[{index}].id")
-        runner.observers.append(observer_cls.from_config(spec.params, robot=robot, env=env, base_dir=base_dir))
-    return runner, skill
+        observers.append(observer_cls.from_config(spec.params, robot=robot, env=env, base_dir=base_dir))
+    return observers
 
 
 def _fallback_skill(env: RobotEnvironment, robot: RobotManifest) -> RSkillBase | None:
@@ -155,4 +207,5 @@ __all__ = [
     "SENSOR_BACKEND_REGISTRY",
     "SKILL_REGISTRY",
     "build_runner",
+    "check_deployment",
 ]

@@ -18,6 +18,7 @@ import structlog
 
 from openral_core import (
     Action,
+    JointState,
     RealtimeConfig,
     ROSConfigError,
     ROSError,
@@ -33,7 +34,7 @@ from openral_observability import metrics, semconv, tracer
 from openral_rskill.base import RSkillBase
 from openral_runner.observer import TickObserver
 from openral_runner.realtime import apply_realtime
-from openral_runner.safety import SafetyClient
+from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
 from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
 from openral_runner.skill_runner import SkillRunnerBase, record_error
 from openral_runner.thumbnails import ThumbnailPublisher, ThumbnailSubscriber
@@ -57,7 +58,8 @@ class HardwareRunner(SkillRunnerBase):
         skill: An active skill.
         aggregator: Builds the world state each tick.
         sensor_readers: Capture backends, opened in order at activation.
-        safety_client: Checks every action; defaults to ``NullSafetyClient``.
+        safety_client: Checks every action; defaults to ``NullSafetyClient``. Its optional
+            ``observe_state`` and ``commit`` are called each tick when it has them.
         task: Instruction placed in every world state.
         realtime: Real-time knobs applied to the calling thread at activation.
         sync: Cameras read as one set with bounded capture skew each tick.
@@ -168,6 +170,21 @@ class HardwareRunner(SkillRunnerBase):
         except Exception as exc:  # a failing close must not stop the others from closing
             _log.warning("close failed", component=what, error=str(exc))
 
+    @property
+    def safety_client(self) -> SafetyClient:
+        """The client every action passes; assigning one decides once which of its optional hooks run."""
+        return self._safety_client
+
+    @safety_client.setter
+    def safety_client(self, client: SafetyClient) -> None:
+        self._safety_client = client
+        self._observe_state: Callable[[JointState], None] | None = (
+            client.observe_state if isinstance(client, SafetyStateObserver) else None
+        )
+        self._commit_sent: Callable[[Action], None] | None = (
+            client.commit if isinstance(client, SafetyCommitListener) else None
+        )
+
     # -- schedule phase --------------------------------------------------------------------
 
     def _schedule_origin(self) -> float:
@@ -261,7 +278,8 @@ class HardwareRunner(SkillRunnerBase):
         try:
             state = self.hal.read_state()
             self.aggregator.update_joint_state(state)
-            self.safety_client.observe_state(state)
+            if self._observe_state is not None:
+                self._observe_state(state)
         except ROSError as exc:
             withheld = WithheldReason.READ_STATE
             record_error(span, exc)
@@ -299,7 +317,8 @@ class HardwareRunner(SkillRunnerBase):
                 try:
                     self.hal.send_action(to_send)
                     applied = True
-                    self.safety_client.commit(to_send)
+                    if self._commit_sent is not None:
+                        self._commit_sent(to_send)
                 except ROSError as exc:
                     withheld = WithheldReason.HAL_ERROR
                     record_error(span, exc)

@@ -9,8 +9,10 @@ boundaries the runner is given, and are closed (flushed) on every exit path.
 A deployment lists observers in its ``observers:`` block; each is a plugin in the
 ``openral.observers`` entry-point group built with
 ``Cls.from_config(params, robot=..., env=..., base_dir=...)``, which validates ``params`` with
-its own typed model and does no I/O that would need undoing (``openral validate`` builds it).
-Observers subclass :class:`TickObserver` and override what they need.
+its own typed model and opens nothing: no socket, no session, no port (``openral validate``
+builds it). An observer that needs one opens it in ``start()`` (:class:`StartableObserver`), which
+the runner calls once when it activates, before the first tick. Observers subclass
+:class:`TickObserver` and override what they need.
 """
 
 from __future__ import annotations
@@ -37,3 +39,15 @@ class TickObserver(Protocol):
 
     def close(self) -> None:
         """Flush and release; called once when the runner deactivates."""
+
+
+@runtime_checkable
+class StartableObserver(Protocol):
+    """An observer that opens what it needs (a server's port, a Zenoh session) when the runner starts.
+
+    ``start`` is called once at activation, before the first tick, and must be idempotent; a
+    failure there rolls the start-up back. ``close`` still ends every observer, started or not.
+    """
+
+    def start(self) -> None:
+        """Open what building the observer deliberately left closed."""

@@ -14,7 +14,7 @@ the events on Zenoh (``openral/<robot>/perception/<kind>``, with ``zenoh:`` set)
           motion: {threshold: 25}
           scene_change: {threshold: 0.5}
           objects: {model: models/cube_detector.onnx, labels: [cube]}
-          zenoh: {listen: [tcp/0.0.0.0:7448]}
+          zenoh: {listen: [tcp/127.0.0.1:7448]}
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import numpy as np
 
 from openral_core import FrameEncoding, ROSConfigError, TickResult, WorldState
 from openral_core.config import validate_model
+from openral_core.config_files import is_regular_file, require_user_file, resolve_user_path
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.backends.gstreamer.perception_tee import (
     EventDetector,
@@ -62,9 +63,11 @@ def build_detectors(params: PerceptionParams, base_dir: Path | None) -> list[Eve
         detectors.append(SceneChangeDetector(**params.scene_change.model_dump()))
     if params.objects is not None:
         objects = params.objects
-        path = Path(objects.model)
-        if not path.is_absolute() and base_dir is not None and not path.is_file():
+        field = "observers[].params.objects.model"
+        path = resolve_user_path(objects.model, field=field)
+        if not path.is_absolute() and base_dir is not None and not is_regular_file(path):
             path = base_dir / path
+        path = require_user_file(path, field=field, what="model file")
         # Loaded only when asked for: the detector imports onnxruntime (the 'policy' extra).
         module = importlib.import_module("openral_runner.backends.gstreamer.objects_detector")
         detectors.append(
@@ -109,12 +112,19 @@ def build_publisher(params: PerceptionParams, *, robot_id: str, base_dir: Path |
 
 
 class PerceptionObserver(TickObserver):
-    """Feeds the frames of each tick to a perception publisher (O(1) per camera on the tick thread)."""
+    """Feeds the frames of each tick to a perception publisher (O(1) per camera on the tick thread).
+
+    Building it loads the detectors (the model files are checked) but opens no session: the runner
+    calls :meth:`start` when it activates.
+    """
 
     def __init__(self, publisher: PerceptionEventPublisher, *, sensors: list[str] | None = None) -> None:
         self.publisher = publisher
         self.sensors = None if sensors is None else set(sensors)
-        publisher.start()
+
+    def start(self) -> None:
+        """Start the detector worker and open the sinks (the Zenoh session listens from here on)."""
+        self.publisher.start()
 
     @classmethod
     def from_config(

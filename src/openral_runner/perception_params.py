@@ -4,9 +4,13 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from openral_core.perception import ModelInputSize
 from openral_remote.config import ZenohConfig
+
+DEFAULT_EVENT_LISTEN = "tcp/127.0.0.1:7448"
+"""Where the event publisher listens when the file names no endpoint: this machine only."""
 
 
 class MotionParams(BaseModel):
@@ -31,7 +35,7 @@ class ObjectsParams(BaseModel):
     model: str = Field(min_length=1, description="An ONNX detector with the RT-DETR signature.")
     labels: list[str] = Field(min_length=1, description="Class names, in the model's class order.")
     model_id: str | None = Field(default=None, description="Named in the events (default: the file's stem).")
-    input_size: tuple[int, int] = Field(default=(640, 640), description="The model's (height, width).")
+    input_size: ModelInputSize = Field(default=(640, 640), description="The model's (height, width).")
     score_threshold: float = Field(default=0.5, ge=0, le=1)
     resize: Literal["stretch", "letterbox"] = Field(default="stretch", description="letterbox keeps the aspect.")
 
@@ -50,6 +54,18 @@ class PerceptionParams(BaseModel):
     detector_manifest: str | None = Field(
         default=None, description="A kind: detector rSkill manifest (instead of objects), relative to the deployment."
     )
-    zenoh: ZenohConfig | None = Field(default=None, description="Publish events on Zenoh with this session.")
+    zenoh: ZenohConfig | None = Field(
+        default=None,
+        description=f"Publish events on Zenoh with this session (listening on {DEFAULT_EVENT_LISTEN} unless it says).",
+    )
     robot: str | None = Field(default=None, description="Robot segment of the Zenoh keys (default: the robot id).")
     ros2: bool = Field(default=False, description="Also publish on ROS 2 /openral/perception/<kind> (needs rclpy).")
+
+    @field_validator("zenoh")
+    @classmethod
+    def _loopback_unless_told(cls, zenoh: ZenohConfig | None) -> ZenohConfig | None:
+        """A peer session given no endpoint to listen on would listen on every interface (Zenoh's default)."""
+        if zenoh is None or zenoh.mode != "peer" or zenoh.listen:
+            return zenoh
+        listen = "tcp/127.0.0.1:0" if zenoh.connect else DEFAULT_EVENT_LISTEN
+        return zenoh.model_copy(update={"listen": [listen]})

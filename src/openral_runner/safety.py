@@ -23,9 +23,9 @@ class SafetyClient(Protocol):
     ``ROSEStopRequested`` stops the loop and e-stops the robot. The runner is the
     supervisor boundary that catches both; nothing else does.
 
-    Every tick the runner also calls ``observe_state`` with the measured joints (before the
-    skill steps) and ``commit`` with the action actually sent; a client that keeps no state
-    inherits the no-op defaults by subclassing this protocol.
+    This is the whole contract a client must meet. A client that measures steps from the
+    robot's state also implements :class:`SafetyStateObserver` and :class:`SafetyCommitListener`;
+    the runner finds out which when the client is given to it, not per tick.
     """
 
     envelope: SafetyEnvelope
@@ -34,13 +34,23 @@ class SafetyClient(Protocol):
         """Allow, replace or reject ``action``."""
         ...
 
+
+@runtime_checkable
+class SafetyStateObserver(Protocol):
+    """A safety client that wants the joints measured each tick, before the skill steps."""
+
     def observe_state(self, state: JointState) -> None:
-        """The joints measured this tick (a step limit is measured from them). Default: ignored."""
-        return
+        """The joints measured this tick (a step limit is measured from them)."""
+        ...
+
+
+@runtime_checkable
+class SafetyCommitListener(Protocol):
+    """A safety client that wants to know which action actually reached the robot each tick."""
 
     def commit(self, action: Action) -> None:
-        """The action that reached the robot this tick. Default: ignored."""
-        return
+        """The action the HAL accepted this tick (a check may replace or the deadline withhold the requested one)."""
+        ...
 
 
 class NullSafetyClient(SafetyClient):

@@ -7,9 +7,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
-from openral_core import ROSConfigError, ROSPerceptionStale, ROSSyncError, SensorFrame, SensorReaderConfig
+from openral_core import ROSPerceptionStale, ROSSyncError, SensorFrame, SensorReaderConfig
 from openral_core.config import ModelT, validate_model
-from openral_core.config_files import resolve_user_path
+from openral_core.config_files import require_user_file
 
 
 @runtime_checkable
@@ -148,15 +148,7 @@ def require_video_file(device: str, base_dir: Path | None, *, sensor_id: str) ->
     Raises:
         ROSConfigError: The file does not exist or is not a regular file.
     """
-    field = f"sensors[{sensor_id}].backend_params.device"
-    path = resolve_user_path(device, base_dir, field=field)
-    if not path.is_file():
-        raise ROSConfigError(
-            f"video file not found: {path}",
-            field=field,
-            hint="check the path (a relative path is taken from the deployment file's folder)",
-        )
-    return path
+    return require_user_file(device, base_dir, field=f"sensors[{sensor_id}].backend_params.device", what="video file")
 
 
 def read_synced_set(

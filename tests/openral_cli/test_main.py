@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -104,6 +104,78 @@ def test_validate_accepts_the_shipped_twin_deployment() -> None:
     assert "so101_follower" in out.output
 
 
+def _listening_socket() -> socket.socket:
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    listener.setblocking(False)
+    return listener
+
+
+def _was_contacted(listener: socket.socket) -> bool:
+    try:
+        conn, _ = listener.accept()
+    except BlockingIOError:
+        return False
+    conn.close()
+    return True
+
+
+def test_validate_of_a_remote_deployment_neither_waits_for_nor_contacts_the_server(tmp_path: Path) -> None:
+    pytest.importorskip("zenoh", reason="needs the 'remote' extra")
+    with _listening_socket() as server:  # where the file says the server is: it must never be called
+        port = server.getsockname()[1]
+        text = (ROOT / "deployments" / "so101_twin_remote.yaml").read_text(encoding="utf-8")
+        text = text.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}").replace(
+            "connect_timeout_s: 10", "connect_timeout_s: 600"
+        )
+        path = write(tmp_path, text)
+        out = CliRunner().invoke(cli, ["validate", str(path)])
+        assert out.exit_code == 0, out.output
+        assert "remote_policy" in out.output
+        assert not _was_contacted(server)
+        bad = CliRunner().invoke(
+            cli, ["validate", str(write(tmp_path, text.replace("deadline_ms: 300", "deadline_ms: -1")))]
+        )
+        assert bad.exit_code == 2, bad.output
+        assert "vla.params.deadline_ms" in bad.output
+
+
+def test_validate_of_a_perception_deployment_binds_nothing(tmp_path: Path) -> None:
+    pytest.importorskip("zenoh", reason="needs the 'remote' extra")
+    pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
+    pytest.importorskip("mujoco", reason="needs the 'twin' extra")
+    with _listening_socket() as taken:  # the port the file listens on is in use: validate must not care
+        port = taken.getsockname()[1]
+        text = (ROOT / "deployments" / "so101_twin_perception.yaml").read_text(encoding="utf-8")
+        text = text.replace("tcp/127.0.0.1:7448", f"tcp/127.0.0.1:{port}").replace("../models/", f"{ROOT}/models/")
+        path = write(tmp_path, text)
+        for _ in range(2):
+            out = CliRunner().invoke(cli, ["validate", str(path)])
+            assert out.exit_code == 0, out.output
+
+
+def test_validate_refuses_a_model_path_that_cannot_be_a_file(tmp_path: Path) -> None:
+    pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
+    text = (ROOT / "deployments" / "so101_twin_perception.yaml").read_text(encoding="utf-8")
+    path = write(tmp_path, text.replace("../models/cube_detector.onnx", "m" * 300 + ".onnx"))
+    out = CliRunner().invoke(cli, ["validate", str(path)])
+    assert out.exit_code == 2, out.output
+    assert "objects.model" in out.output
+    assert "File name too long" in out.output
+    assert "unexpected" not in out.output
+
+
+def test_validate_creates_no_bag_so_the_deployment_still_runs(tmp_path: Path) -> None:
+    pytest.importorskip("mcap", reason="needs the 'dataset' extra")
+    path = write(tmp_path, NULL_DEPLOYMENT + "observers:\n  - id: ros2_bag\n    params: {path: run.mcap}\n")
+    assert CliRunner().invoke(cli, ["validate", str(path)]).exit_code == 0
+    assert not (tmp_path / "run.mcap").exists()
+    out = CliRunner().invoke(cli, ["deploy", "--config", str(path), "--max-ticks", "5", "--json"])
+    assert out.exit_code == 0, out.output
+    assert (tmp_path / "run.mcap").stat().st_size > 0
+
+
 def test_schema_is_json_schema_of_the_deployment(tmp_path: Path) -> None:
     out = CliRunner().invoke(cli, ["schema"])
     assert out.exit_code == 0
@@ -174,21 +246,39 @@ def test_calibrate_records_the_ranges_a_person_moves_through(tmp_path: Path) -> 
     pytest.importorskip("serial", reason="needs the 'serial' extra (pyserial)")
     import threading  # noqa: PLC0415
 
+    from openral_hal.feetech import protocol as p  # noqa: PLC0415
     from openral_hal.feetech.calibration import load_calibration  # noqa: PLC0415
     from openral_hal.feetech.emulator import ServoBusEmulator  # noqa: PLC0415
 
     output = tmp_path / "so101.json"
     with ServoBusEmulator(range(1, 7)) as bus:
         done = threading.Event()
+        reads = threading.Condition()
+        position_reads = [0]
+
+        def on_request(packet: p.Packet) -> None:
+            if packet.code == p.Instruction.SYNC_READ and packet.params[0] == p.Register.PRESENT_POSITION:
+                with reads:
+                    position_reads[0] += 1
+                    reads.notify_all()
+
+        def wait_for_reads(more: int) -> None:
+            """Wait until ``more`` position reads are requested after now (the first of them sees the arm as it is)."""
+            with reads:
+                target = position_reads[0] + more
+                assert reads.wait_for(lambda: position_reads[0] >= target, timeout=30), "calibrate stopped reading"
+
+        bus.on_request = on_request
 
         def person_moves_the_arm() -> None:
-            # After the middle pose is confirmed, sweep each joint 600 ticks each way, as a hand would.
-            time.sleep(0.3)
+            # Once the middle pose has been read (a second read is asked for only after the first), sweep
+            # each joint 600 ticks each way, as a hand would, holding each end until calibrate has read it.
+            wait_for_reads(2)
             for servo_id in range(1, 7):
                 bus.move_by_hand(servo_id, 2048 - 600)
-                time.sleep(0.05)
+                wait_for_reads(1)
                 bus.move_by_hand(servo_id, 2048 + 600)
-                time.sleep(0.05)
+                wait_for_reads(1)
             done.set()
 
         mover = threading.Thread(target=person_moves_the_arm)

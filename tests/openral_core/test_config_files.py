@@ -14,9 +14,11 @@ from openral_core.config_files import (
     MAX_CONFIG_BYTES,
     MAX_VALUES,
     expand_user_path,
+    is_regular_file,
     load_config_file,
     parse_config_text,
     read_config_file,
+    require_user_file,
     resolve_user_path,
 )
 
@@ -235,3 +237,28 @@ def test_extreme_numbers_are_refused_with_the_field(tmp_path: Path, extra: str, 
     path = tmp_path / "d.yaml"
     path.write_text(MINIMAL + extra)
     assert _error(lambda: RobotEnvironment.from_yaml(path)).field == field
+
+
+@pytest.mark.parametrize(
+    ("name", "expected"),
+    [
+        ("m" * 300 + ".onnx", "cannot be a file: File name too long"),
+        ("exists.txt/inside.onnx", "cannot be a file: Not a directory"),
+        ("missing.onnx", "model file not found"),
+        (".", "is a directory, not a regular file"),
+    ],
+)
+def test_a_path_that_cannot_be_a_file_is_a_config_error_naming_the_field(
+    tmp_path: Path, name: str, expected: str
+) -> None:
+    (tmp_path / "exists.txt").write_text("x")
+    assert not is_regular_file(tmp_path / name)
+    with pytest.raises(ROSConfigError, match=expected) as caught:
+        require_user_file(name, tmp_path, field="objects.model", what="model file")
+    assert caught.value.field == "objects.model"
+
+
+def test_require_user_file_resolves_against_the_deployment_folder(tmp_path: Path) -> None:
+    (tmp_path / "model.onnx").write_bytes(b"x")
+    assert require_user_file("model.onnx", tmp_path, field="f") == tmp_path / "model.onnx"
+    assert is_regular_file(tmp_path / "model.onnx")

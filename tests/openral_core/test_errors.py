@@ -127,3 +127,20 @@ def test_errors_survive_pickling(error: ROSError) -> None:
     assert type(back) is type(error)
     assert str(back) == str(error)
     assert vars(back).keys() == vars(error).keys()
+
+
+@pytest.mark.parametrize(
+    ("message", "field", "hint"),
+    [
+        ("'a\tb\nc' is not a pattern", "sensors[cam].backend_params.pattern", None),
+        ("unknown key", "params.pa\nttern\x1b[31m", "did you mean\r\n'pattern'?"),
+        ("value\x00\x07\u2028here", None, None),
+    ],
+)
+def test_config_error_echoing_control_characters_stays_on_one_printable_line(
+    message: str, field: str | None, hint: str | None
+) -> None:
+    text = str(ROSConfigError(message, field=field, hint=hint))
+    assert text.isprintable(), repr(text)
+    assert "\\n" in text or "\\x00" in text or "\\r" in text
+    assert "is not a pattern" in text or "unknown key" in text or "here" in text

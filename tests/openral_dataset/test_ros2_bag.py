@@ -119,3 +119,22 @@ def test_an_existing_bag_is_not_overwritten(tmp_path: Path) -> None:
     with pytest.raises(ROSConfigError, match="--mcap"):
         Ros2BagWriter(path, joint_names=JOINTS)
     assert path.read_bytes() == b"precious"
+
+
+def test_building_creates_no_file_and_start_creates_it(tmp_path: Path) -> None:
+    path = tmp_path / "later.mcap"
+    bag = Ros2BagWriter(path, joint_names=JOINTS, field="observers[].params.path")
+    assert not path.exists()  # what openral validate builds leaves nothing behind
+    bag.close()
+    assert not path.exists()
+    bag = Ros2BagWriter(path, joint_names=JOINTS)
+    bag.start()
+    bag.start()
+    bag.close()
+    with open(path, "rb") as stream:
+        assert make_reader(stream).get_header().profile == "ros2"
+
+
+def test_a_missing_folder_is_refused_when_built_naming_the_field(tmp_path: Path) -> None:
+    with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.path: .*no folder"):
+        Ros2BagWriter(tmp_path / "nope" / "run.mcap", joint_names=JOINTS, field="observers[].params.path")

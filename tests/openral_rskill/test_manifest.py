@@ -138,3 +138,15 @@ def test_builtin_manifests_load_and_build_their_skill(name: str, robot: RobotMan
 def test_unknown_builtin_manifest_lists_the_known_ones() -> None:
     with pytest.raises(ROSConfigError, match="built-in: hello, noop"):
         builtin_manifest("hullo")
+
+
+@pytest.mark.parametrize("size", ["[0, 0]", "[-4, 640]", "[640, 1000000]"])
+def test_a_detector_input_size_out_of_range_is_refused_naming_the_field(tmp_path: Path, size: str) -> None:
+    path = tmp_path / "cube.rskill.yaml"
+    path.write_text(
+        "name: cube\nkind: detector\nlicense: Apache-2.0\n"
+        f"detector: {{model: cube.onnx, labels: [cube], input_size: {size}}}\n",
+        encoding="utf-8",
+    )
+    with pytest.raises(ROSConfigError, match=r"detector\.input_size"):
+        RSkillManifest.from_yaml(path)

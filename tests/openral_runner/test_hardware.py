@@ -11,6 +11,7 @@ import pytest
 from openral_core import (
     Action,
     DeadlineOverrunPolicy,
+    JointState,
     ROSConfigError,
     ROSEStopRequested,
     ROSHardwareError,
@@ -27,7 +28,7 @@ from openral_rskill.testing import ScriptedSkill
 from openral_runner.clock import SystemClock
 from openral_runner.hardware import HardwareRunner
 from openral_runner.observer import TickObserver
-from openral_runner.safety import SafetyClient
+from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
 from openral_runner.testing import FakeClock, ScriptedReader
 from openral_world_state import WorldStateAggregator
 
@@ -167,6 +168,80 @@ def test_clamping_client_records_requested_and_sent() -> None:
     assert tick.requested_action == [0.8, 0.0, 0.0]
     assert tick.sent_action == [0.4, 0.0, 0.0]
     assert hal.sent[0].first == [0.4, 0.0, 0.0]
+
+
+class SpecOnlySafety:
+    """Exactly the specification's ``SafetyClient``: an envelope and ``check_action``, no openral base class."""
+
+    envelope = SafetyEnvelope()
+
+    def __init__(self) -> None:
+        self.checked: list[list[float]] = []
+
+    def check_action(self, action: Action) -> Action | None:
+        self.checked.append(action.first)
+        if action.first[0] < 0:
+            raise ROSSafetyViolation("j0 below 0", check_name="joint_limit")
+        return None
+
+
+class StatefulSafety(HalvingSafety):
+    """A clamping client that also takes the optional hooks: what it observed and what was sent."""
+
+    def __init__(self) -> None:
+        self.observed: list[list[float]] = []
+        self.committed: list[list[float]] = []
+
+    def observe_state(self, state: JointState) -> None:
+        self.observed.append(list(state.positions))
+
+    def commit(self, action: Action) -> None:
+        self.committed.append(action.first)
+
+
+def test_a_client_with_only_the_specified_protocol_drives_the_runner() -> None:
+    clock = FakeClock()
+    safety = SpecOnlySafety()
+    assert isinstance(safety, SafetyClient)
+    assert not isinstance(safety, SafetyStateObserver | SafetyCommitListener)
+    skill = ScriptedSkill(JOINTS, actions=rows(0.1, 0.2, -0.5, 0.3, 0.4))
+    configs = [SensorReaderConfig(sensor_id="front")]
+    runner, hal, _ = build(
+        clock, skill=skill, safety=safety, readers=[ScriptedReader("front", clock)], sensor_configs=configs
+    )
+    runner.activate()
+    result = runner.run(5)
+    assert result.n_ticks == 5
+    assert result.failed_ticks == 0
+    assert safety.checked == [[v, 0.0, 0.0] for v in (0.1, 0.2, -0.5, 0.3, 0.4)]
+    assert [a.first[0] for a in hal.sent] == [0.1, 0.2, 0.3, 0.4]
+    assert [t.withheld_reason for t in runner.recent_ticks] == [None, None, "safety", None, None]
+
+
+def test_optional_safety_hooks_see_every_measured_state_and_only_sent_actions() -> None:
+    clock = FakeClock()
+    safety = StatefulSafety()
+    skill = ScriptedSkill(JOINTS, actions=rows(0.8, 0.4))
+    runner, hal, _ = build(clock, skill=skill, safety=safety)
+    runner.activate()
+    runner.run(2)
+    assert safety.observed == [[0.0, 0.0, 0.0], [0.4, 0.0, 0.0]]  # measured before each step
+    assert safety.committed == [a.first for a in hal.sent] == [[0.4, 0.0, 0.0], [0.2, 0.0, 0.0]]  # the replacement
+
+
+def test_a_safety_client_assigned_later_brings_its_own_hooks() -> None:
+    clock = FakeClock()
+    first = StatefulSafety()
+    runner, _, _ = build(clock, skill=ScriptedSkill(JOINTS, actions=rows(0.1, 0.2, 0.3)), safety=first)
+    runner.activate()
+    runner.run(1)
+    runner.safety_client = SpecOnlySafety()
+    runner.run(1)
+    second = StatefulSafety()
+    runner.safety_client = second
+    runner.run(1)
+    assert (len(first.observed), len(first.committed)) == (1, 1)
+    assert second.committed == [[0.15, 0.0, 0.0]]
 
 
 def test_estop_stops_loop_and_calls_hal_estop() -> None:

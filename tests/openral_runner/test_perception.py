@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from openral_core import FrameEncoding, ROSConfigError, SensorFrame, TickResult, WorldState
+from openral_core.config import validate_model
 from openral_runner.perception import PerceptionObserver, bgr_view
+from openral_runner.perception_params import PerceptionParams
 from openral_runner.testing import RecordingEventSink
 
 pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
@@ -41,6 +43,8 @@ def test_a_detector_manifest_runs_on_the_frames_of_each_tick_in_their_colour_ord
     sink = RecordingEventSink()
     observer.publisher.sinks.append(sink)
     assert [d.kind for d in observer.publisher.detectors] == ["motion", "objects"]
+    assert not observer.publisher.is_started  # building starts nothing; the runner starts it
+    observer.start()
     rgb = np.zeros((120, 160, 3), dtype=np.uint8)
     rgb[...] = (40, 60, 90)  # RGB dark blue
     rgb[40:70, 60:100] = (210, 90, 200)  # RGB magenta: the cube only if the channels are read right
@@ -69,3 +73,24 @@ def test_frames_are_viewed_as_bgr_without_a_copy():
 def test_no_detector_is_a_configuration_error():
     with pytest.raises(ROSConfigError, match="no detector"):
         PerceptionObserver.from_config({"rate_hz": 5}, robot=Robot(), env=None)
+
+
+@pytest.mark.parametrize(
+    ("zenoh", "listen"),
+    [
+        ({}, ["tcp/127.0.0.1:7448"]),
+        ({"connect": ["tcp/10.0.0.5:7447"]}, ["tcp/127.0.0.1:0"]),
+        ({"listen": ["tcp/0.0.0.0:7448"]}, ["tcp/0.0.0.0:7448"]),
+        ({"mode": "client", "connect": ["tcp/10.0.0.5:7447"]}, []),
+    ],
+)
+def test_the_event_session_listens_on_loopback_unless_the_file_says_otherwise(zenoh: dict, listen: list[str]) -> None:
+    params = validate_model(PerceptionParams, {"motion": {}, "zenoh": zenoh})
+    assert params.zenoh is not None
+    assert params.zenoh.listen == listen
+
+
+@pytest.mark.parametrize("size", [[0, 0], [-1, 640], [640, 100_000]])
+def test_a_model_input_size_out_of_range_is_a_config_error(size: list[int]) -> None:
+    with pytest.raises(ROSConfigError, match=r"objects\.input_size"):
+        validate_model(PerceptionParams, {"objects": {"model": "m.onnx", "labels": ["cube"], "input_size": size}})

@@ -32,6 +32,7 @@ from openral_core import (
     ROSRuntimeError,
     SensorReaderConfig,
 )
+from openral_core.config_files import is_regular_file
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
 from openral_runner.sensor_reader import require_video_file, validate_backend_params
 
@@ -294,7 +295,7 @@ class OpenCVThreadSensorReader(SlotReader):
             raise ROSConfigError(
                 f"sensor '{self.sensor_id}': this OpenCV build has no {self.api_preference} capture API", hint=hint
             )
-        if self.is_file and not Path(str(self.device)).is_file():
+        if self.is_file and not is_regular_file(Path(str(self.device))):
             raise ROSConfigError(
                 f"sensor '{self.sensor_id}': video file not found: {self.device}",
                 hint="check backend_params.device (relative paths are resolved against the deployment file)",

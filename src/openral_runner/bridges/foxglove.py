@@ -154,6 +154,7 @@ class FoxgloveSink(TickObserver):
     Args:
         port: Serve a Foxglove WebSocket on this port (0 picks a free one; see :attr:`port`).
             ``None`` serves nothing (the channels only reach sinks attached to :attr:`context`).
+            The port is bound by :meth:`start` (the runner calls it at activation), never here.
         host: Interface the server binds to.
         queue_size: Ticks buffered for the worker; when full the oldest is dropped and counted.
         flush_interval_s: How often the worker wakes to publish what was handed over (the live
@@ -162,7 +163,7 @@ class FoxgloveSink(TickObserver):
         close_timeout_s: How long :meth:`close` waits for the worker to drain.
 
     Raises:
-        ROSConfigError: The port cannot be bound, or ``queue_size`` is below 1.
+        ROSConfigError: ``queue_size`` is below 1.
     """
 
     def __init__(
@@ -181,35 +182,41 @@ class FoxgloveSink(TickObserver):
         self._wake_at = max(1, queue_size // 2)
         self._offset_ns = time.time_ns() - time.monotonic_ns()
         self._context = foxglove.Context()
+        self._listen = None if port is None else (host, port)
         self._server: WebSocketServer | None = None
 
-        with ExitStack() as stack:
-            if port is not None:
-                try:
-                    server = foxglove.start_server(name="openral", host=host, port=port, context=self._context)
-                except RuntimeError as exc:
-                    raise ROSConfigError(
-                        f"cannot serve Foxglove on {host}:{port}: {exc}", hint="choose another port: --foxglove PORT"
-                    ) from exc
-                stack.callback(server.stop)
-                self._server = server
-            self._tick_channel = foxglove.Channel(TOPIC_TICK, schema=TICK_SCHEMA, context=self._context)
-            self._joint_channel = foxglove.Channel(TOPIC_JOINT_STATES, schema=JOINT_STATE_SCHEMA, context=self._context)
-            self._safety_channel = foxglove.Channel(TOPIC_SAFETY, schema=SAFETY_SCHEMA, context=self._context)
-            self._camera_channels: dict[str, CompressedImageChannel] = {}
+        self._tick_channel = foxglove.Channel(TOPIC_TICK, schema=TICK_SCHEMA, context=self._context)
+        self._joint_channel = foxglove.Channel(TOPIC_JOINT_STATES, schema=JOINT_STATE_SCHEMA, context=self._context)
+        self._safety_channel = foxglove.Channel(TOPIC_SAFETY, schema=SAFETY_SCHEMA, context=self._context)
+        self._camera_channels: dict[str, CompressedImageChannel] = {}
 
-            self._cond = threading.Condition()
-            self._ticks: deque[_Item] = deque(maxlen=queue_size)
-            self._images: dict[str, tuple[Thumbnail, int]] = {}
-            self._closed = False
-            self.dropped = 0
-            self.images_replaced = 0
-            self.ticks_published = 0
-            self.images_published = 0
-            self.publish_errors = 0
-            self._thread = threading.Thread(target=self._run, name="openral-foxglove", daemon=True)
-            self._thread.start()
-            stack.pop_all()
+        self._cond = threading.Condition()
+        self._ticks: deque[_Item] = deque(maxlen=queue_size)
+        self._images: dict[str, tuple[Thumbnail, int]] = {}
+        self._closed = False
+        self.dropped = 0
+        self.images_replaced = 0
+        self.ticks_published = 0
+        self.images_published = 0
+        self.publish_errors = 0
+        self._thread = threading.Thread(target=self._run, name="openral-foxglove", daemon=True)
+        self._thread.start()
+
+    def start(self) -> None:
+        """Bind the live server (when a port was given). Idempotent; building the sink binds nothing.
+
+        Raises:
+            ROSConfigError: The port cannot be bound.
+        """
+        if self._listen is None or self._server is not None:
+            return
+        host, port = self._listen
+        try:
+            self._server = foxglove.start_server(name="openral", host=host, port=port, context=self._context)
+        except RuntimeError as exc:
+            raise ROSConfigError(
+                f"cannot serve Foxglove on {host}:{port}: {exc}", hint="choose another port: --foxglove PORT"
+            ) from exc
 
     @classmethod
     def from_config(
@@ -220,7 +227,7 @@ class FoxgloveSink(TickObserver):
         Images come from the runner's thumbnails: give the deployment a ``thumbnail_hz``.
 
         Raises:
-            ROSConfigError: A wrong parameter (named with the allowed keys), or the port cannot be bound.
+            ROSConfigError: A wrong parameter (named with the allowed keys).
         """
         config = validate_model(FoxgloveParams, dict(params), field_prefix="observers[].params")
         return cls(port=config.port, host=config.host)

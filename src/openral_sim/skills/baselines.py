@@ -11,15 +11,20 @@ from collections.abc import Mapping
 from typing import Any, Self
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import Action, ControlMode, RobotManifest, RSkillInfo, WorldState
 from openral_rskill.base import validate_params
 from openral_sim.skills._base import ActionSpaceSkill
 
+MAX_SEED = 2**63 - 1
+"""Largest seed accepted: one that fits the signed 64-bit integers results and datasets store seeds in."""
 
-class _NoParams(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+
+class ZeroParams(BaseModel):
+    """``params`` of the ``zero`` skill: none; any key is an error."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 class ZeroSkill(ActionSpaceSkill):
@@ -29,7 +34,7 @@ class ZeroSkill(ActionSpaceSkill):
 
     @classmethod
     def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> Self:
-        validate_params(_NoParams, params, skill_id="zero")
+        validate_params(ZeroParams, params, skill_id="zero")
         return cls(robot, ControlMode.EE_DELTA)
 
     @property
@@ -43,9 +48,9 @@ class ZeroSkill(ActionSpaceSkill):
 class RandomParams(BaseModel):
     """``params`` of the ``random`` skill."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, le=MAX_SEED)
     """Used when the runner gives no episode seed (on hardware this skill has no business running)."""
 
 

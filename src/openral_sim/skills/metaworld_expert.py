@@ -50,7 +50,7 @@ _LARGE_RESPONSE_WARNING = r"Constant\(s\) may be too high"
 class MetaWorldExpertParams(BaseModel):
     """``params`` of ``metaworld_expert``."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     task: str = Field(min_length=1, description="The MetaWorld task the policy solves, as the scene's env_id.")
 

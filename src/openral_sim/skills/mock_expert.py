@@ -16,9 +16,9 @@ from openral_sim.skills._base import ActionSpaceSkill, privileged
 class MockExpertParams(BaseModel):
     """``params`` of ``mock_reach_expert``."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    gain: float = Field(default=20.0, gt=0, description="Action per unit of distance to the target.")
+    gain: float = Field(default=20.0, gt=0, le=1e6, description="Action per unit of distance to the target.")
 
 
 class MockReachExpert(ActionSpaceSkill):

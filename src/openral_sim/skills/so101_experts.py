@@ -28,16 +28,18 @@ GRIPPER_CLOSED = 0.0
 class PickParams(BaseModel):
     """``params`` of ``so101_pick_expert`` (the defaults are the ones measured to succeed)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    action_scale: float = Field(default=0.025, gt=0, description="The env's metres per unit of position action.")
-    hover_height_m: float = Field(default=0.07, gt=0, description="Above the block's centre before descending.")
-    grasp_height_m: float = Field(default=0.015, ge=0, description="Grasp point above the block's centre.")
-    lift_height_m: float = Field(default=0.13, gt=0, description="How far to lift the block.")
-    close_steps: int = Field(default=10, ge=1, description="Steps the jaw is given to close.")
-    tolerance_m: float = Field(default=0.004, gt=0, description="A moving phase ends within this distance.")
+    action_scale: float = Field(default=0.025, gt=0, le=1, description="The env's metres per unit of position action.")
+    hover_height_m: float = Field(default=0.07, gt=0, le=1, description="Above the block's centre before descending.")
+    grasp_height_m: float = Field(default=0.015, ge=0, le=1, description="Grasp point above the block's centre.")
+    lift_height_m: float = Field(default=0.13, gt=0, le=1, description="How far to lift the block.")
+    close_steps: int = Field(default=10, ge=1, le=10_000, description="Steps the jaw is given to close.")
+    tolerance_m: float = Field(default=0.004, gt=0, le=1, description="A moving phase ends within this distance.")
     careful_speed: float = Field(default=0.4, gt=0, le=1, description="Largest action near the block.")
-    phase_timeout_steps: int = Field(default=60, ge=1, description="A moving phase gives up after this many steps.")
+    phase_timeout_steps: int = Field(
+        default=60, ge=1, le=100_000, description="A moving phase gives up after this many steps."
+    )
 
 
 class _Phase(enum.Enum):
@@ -126,9 +128,9 @@ class SO101PickExpert(ActionSpaceSkill):
 class PickPlaceParams(BaseModel):
     """``params`` of ``so101_pickplace_expert``."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    action_scale: float = Field(default=0.025, gt=0, description="The env's metres per unit of position action.")
+    action_scale: float = Field(default=0.025, gt=0, le=1, description="The env's metres per unit of position action.")
 
 
 class SO101PickPlaceExpert(ActionSpaceSkill):

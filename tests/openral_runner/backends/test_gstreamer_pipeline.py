@@ -14,6 +14,7 @@ import pytest
 import structlog
 
 from openral_core import ROSConfigError
+from openral_core.config import validate_model
 from openral_runner.backends.gstreamer import pipeline as gp
 from openral_runner.backends.gstreamer.pipeline import (
     LEAKY_BRANCH_QUEUE,
@@ -467,3 +468,10 @@ def test_an_explicit_platform_builds_its_pipeline_whatever_this_host_has(monkeyp
         PipelineSpec(source="rtsp", device="rtsp://cam/s"), Platform.NVIDIA_DESKTOP, element_present=nothing
     )
     assert "avdec_h264" in elements(told), "a caller's own probe still decides"
+
+
+def test_pipeline_pattern_error_quotes_the_value_escaped() -> None:
+    with pytest.raises(ROSConfigError) as caught:
+        validate_model(PipelineSpec, {"source": "testsrc", "pattern": "a\tb\nc"}, field_prefix="backend_params")
+    assert str(caught.value).splitlines() == [str(caught.value)]
+    assert "'a\\tb\\nc' is not a videotestsrc pattern" in str(caught.value)

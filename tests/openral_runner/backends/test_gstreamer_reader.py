@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import importlib
+import subprocess
+import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -235,6 +238,39 @@ def test_read_synced_waits_for_a_newer_frame() -> None:
         assert newer.stamp_ns > frame.stamp_ns
         with pytest.raises(ROSPerceptionStale):
             reader.read_synced(time.monotonic_ns() + 10_000_000, newer_than_ns=time.monotonic_ns() + 10**12)
+
+
+_WRAPPED_FIRST = textwrap.dedent(
+    """
+    import sys, time
+    import gi
+    gi.require_version("Gst", "1.0")
+    from gi.repository import Gst
+    Gst.init(None)
+    from openral_runner.backends.gstreamer.pipeline import PipelineSpec, build_pipeline_string
+
+    spec = PipelineSpec(source="testsrc", width=32, height=24, fps=30)
+    probe = Gst.parse_launch(build_pipeline_string(spec))  # the application looks at openral's pipeline first
+    sink = probe.get_by_name(spec.appsink_name)
+    assert "gi.repository.GstApp" not in sys.modules and not hasattr(sink, "pull_sample"), type(sink)
+    probe.set_state(Gst.State.NULL)
+
+    from openral_runner.backends.gstreamer.reader import GStreamerSensorReader
+
+    with GStreamerSensorReader(sensor_id="cam0", spec=spec) as reader:
+        frame = reader.read_synced(time.monotonic_ns() + 10_000_000_000)  # returns on the first frame
+    print("frame", frame.as_array().shape)
+    """
+)
+
+
+def test_frames_flow_when_the_application_wrapped_an_appsink_before_the_reader_was_imported() -> None:
+    # Which Python class wraps an appsink is fixed once per process: only a fresh one shows it.
+    done = subprocess.run(
+        [sys.executable, "-c", _WRAPPED_FIRST], check=False, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert "frame (24, 32, 3)" in done.stdout
 
 
 def test_tee_legs_do_not_slow_the_policy_leg() -> None:

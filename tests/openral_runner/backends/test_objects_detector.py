@@ -101,6 +101,17 @@ def test_the_cube_detector_finds_a_drawn_cube_where_it_is(resize):
     assert detector.detect(_cube_frame(480, 240, (0, 0, 0, 0)), 480, 240, "front") is None
 
 
+def test_the_cube_detector_takes_an_appsinks_flat_buffer_as_the_specification_passes_it():
+    detector = ObjectsDetector(str(CUBE_MODEL), labels=["cube"], model_id="cube")
+    frame = _cube_frame(480, 240, (300, 100, 340, 150))
+    shaped = detector.detect(frame, 480, 240, "front")
+    assert shaped is not None
+    for flat in (frame.tobytes(), memoryview(frame.tobytes()), frame.reshape(-1)):
+        assert detector.detect(flat, 480, 240, "front") == shaped
+    with pytest.raises(ValueError, match="480x240 BGR frame is 345600 bytes"):
+        detector.detect(frame.tobytes()[:-3], 480, 240, "front")
+
+
 def test_a_model_that_is_not_a_detector_is_refused(tmp_path):
     with pytest.raises(ROSConfigError, match="no model file"):
         ObjectsDetector(str(tmp_path / "missing.onnx"), labels=["x"], model_id="m")

@@ -16,6 +16,7 @@ from openral_runner.backends.gstreamer.perception_tee import (
     PerceptionEventPublisher,
     SceneChangeDetector,
     TokenBucket,
+    frame_pixels,
     grey_levels,
 )
 from openral_runner.testing import RecordingEventSink
@@ -53,6 +54,79 @@ def test_detectors_take_any_frame_and_stay_in_their_ranges(first, second):
     still = MotionDetector()
     still.detect(second, W, H, "cam")
     assert still.detect(second.copy(), W, H, "cam") is None
+
+
+def _padded_rows(frame: np.ndarray) -> bytes:
+    """``frame`` as GStreamer lays BGR out: each row padded to a multiple of 4 bytes."""
+    height, width = frame.shape[:2]
+    stride = -(-width * 3 // 4) * 4
+    rows = np.zeros((height, stride), dtype=np.uint8)
+    rows[:, : width * 3] = frame.reshape(height, width * 3)
+    return rows.tobytes()
+
+
+def _buffers(frame: np.ndarray) -> dict[str, object]:
+    """One frame in every form a caller may hand a detector."""
+    flat = frame.tobytes()
+    return {
+        "bytes": flat,
+        "bytearray": bytearray(flat),
+        "memoryview": memoryview(flat),
+        "flat array": frame.reshape(-1),
+        "shaped array": frame,
+        "padded rows": _padded_rows(frame),
+    }
+
+
+@pytest.mark.parametrize("detector_type", [MotionDetector, SceneChangeDetector])
+@pytest.mark.parametrize("width", [W, 7])  # 7 * 3 bytes: rows that GStreamer pads
+def test_detectors_take_frames_as_the_specification_passes_them(detector_type, width):
+    first = np.random.default_rng(width).integers(40, 48, (H, width, 3), dtype=np.uint8)  # a dim, textured view
+    second = first.copy()
+    second[: H // 2] += 180  # its top half lights up: both detectors fire
+    expected = detector_type()
+    expected.detect(first, width, H, "cam0")
+    wanted = expected.detect(second, width, H, "cam0")
+    assert wanted is not None
+    befores, afters = _buffers(first), _buffers(second)
+    for form in befores:
+        before, after = befores[form], afters[form]
+        detector = detector_type()
+        assert detector.detect(before, width, H, "cam0") is None, form
+        assert detector.detect(after, width, H, "cam0") == wanted, form
+
+
+@pytest.mark.parametrize("form", ["bytes", "bytearray", "memoryview", "flat array", "shaped array"])
+def test_frame_pixels_views_the_callers_buffer_without_a_copy(form):
+    frame = np.random.default_rng(1).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    buffer = _buffers(frame)[form]
+    pixels = frame_pixels(buffer, W, H)  # type: ignore[arg-type]
+    assert pixels.shape == (H, W, 3)
+    np.testing.assert_array_equal(pixels, frame)
+    assert np.shares_memory(pixels, np.asarray(memoryview(buffer)))  # type: ignore[arg-type]
+
+
+def test_padded_rows_are_viewed_with_the_padding_cut_off():
+    frame = np.random.default_rng(2).integers(0, 256, (5, 7, 3), dtype=np.uint8)
+    buffer = _padded_rows(frame)
+    pixels = frame_pixels(buffer, 7, 5)
+    np.testing.assert_array_equal(pixels, frame)
+    assert np.shares_memory(pixels, np.frombuffer(buffer, np.uint8))
+
+
+@pytest.mark.parametrize(
+    ("frame", "match"),
+    [
+        (bytes(W * H * 3 - 1), f"a {W}x{H} BGR frame is {W * H * 3} bytes"),
+        (bytes(W * H), f"a {W}x{H} BGR frame is {W * H * 3} bytes"),
+        (np.zeros((W, H, 3), dtype=np.uint8), f"expected a {W}x{H} frame"),
+        (np.zeros((H, W, 3), dtype=np.float32), "uint8"),
+    ],
+)
+def test_a_frame_of_the_wrong_size_is_a_clear_error(frame, match):
+    for detector in (MotionDetector(), SceneChangeDetector()):
+        with pytest.raises(ValueError, match=match):
+            detector.detect(frame, W, H, "cam0")
 
 
 def test_grey_levels_cover_the_whole_range_without_wrapping():

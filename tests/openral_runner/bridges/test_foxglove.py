@@ -247,14 +247,36 @@ def test_a_port_that_cannot_be_bound_names_the_flag(sink_cls) -> None:
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
-        with pytest.raises(ROSConfigError, match="--foxglove"):
-            sink_cls(port=taken.getsockname()[1])
+        sink = sink_cls(port=taken.getsockname()[1])  # building binds nothing: openral validate builds it
+        try:
+            assert sink.port is None
+            with pytest.raises(ROSConfigError, match="--foxglove"):
+                sink.start()
+        finally:
+            sink.close()
+
+
+def test_building_binds_nothing_and_start_binds_once(sink_cls) -> None:
+    import socket  # noqa: PLC0415
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        free = probe.getsockname()[1]
+    with sink_cls(port=free) as sink:
+        with socket.socket() as other:
+            other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
+            other.bind(("127.0.0.1", free))  # the port is still free after building the sink
+        assert sink.port is None
+        sink.start()
+        sink.start()  # idempotent
+        assert sink.port == free
 
 
 def test_live_server_streams_ticks_to_a_websocket_client(sink_cls) -> None:
     connect = pytest.importorskip("websockets.sync.client", reason="needs the websockets client (dev group)").connect
 
     with sink_cls(port=0, host="127.0.0.1") as sink:
+        sink.start()
         assert sink.port
         assert sink.port > 0
         assert sink.app_url is not None

@@ -2,6 +2,12 @@
 
 Every module of this package that touches a live pipeline imports ``Gst`` (and friends) from
 here, so the import checks, the version pins and ``Gst.init`` live in one place.
+
+Appsinks are driven through their action signals (``sink.emit("pull-sample")``), never through
+``GstApp``'s methods: PyGObject fixes an element's Python class the first time it wraps one, so
+if the application wrapped an appsink before ``GstApp`` was loaded (``Gst.parse_launch`` and
+``get_by_name`` are enough), every appsink of the process stays a ``GstAppSink`` without
+``pull_sample``. Signals and properties work whatever the class, so the import order cannot matter.
 """
 
 from __future__ import annotations

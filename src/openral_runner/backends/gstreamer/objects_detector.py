@@ -22,6 +22,7 @@ import structlog
 
 from openral_core import ROSConfigError, ROSDependencyMissing
 from openral_core.perception import ObjectDetection2D, ObjectsMetadata, PixelBox
+from openral_runner.backends.gstreamer.perception_tee import FrameBuffer, frame_pixels
 
 try:
     import onnxruntime as ort
@@ -225,8 +226,9 @@ class ObjectsDetector:
         tensor = np.ascontiguousarray(image.transpose(2, 0, 1)[None], dtype=np.float32) / 255.0
         return tensor, content
 
-    def detect(self, frame_bgr: np.ndarray, width: int, height: int, sensor_id: str) -> ObjectsMetadata | None:
-        tensor, content = self.prepare(frame_bgr)
+    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> ObjectsMetadata | None:
+        """The objects in a ``width`` × ``height`` BGR frame, flat (an appsink's buffer) or shaped."""
+        tensor, content = self.prepare(frame_pixels(frame_bgr, width, height))
         logits, boxes = self._session.run([self._logits, self._boxes], {self._input: tensor})
         return postprocess_rtdetr(
             logits,

@@ -10,7 +10,9 @@ they find to the sinks (Zenoh, ROS 2), with a span per detection and counters in
   counted, and costs nothing.
 * **Newest frame wins.** One slot per sensor: a frame arriving while the worker is busy replaces
   the one waiting (counted), so a slow detector sees fresh frames, never a backlog.
-* **Detectors are plain numpy** over BGR (or grey) arrays: :class:`MotionDetector` (a per-pixel
+* **Detectors are plain numpy** over BGR (or grey) frames, taken as an appsink hands them over
+  (a flat buffer, its size given by width and height) or as arrays (:func:`frame_pixels` views
+  either without a copy): :class:`MotionDetector` (a per-pixel
   threshold, changes counted per cell so a noisy pixel neither fires nor widens the box) and
   :class:`SceneChangeDetector` (grey histograms compared by chi-square over the full 0–255
   range). No GStreamer needed.
@@ -21,7 +23,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, Final, Protocol
+from typing import Any, Final, Protocol, TypeAlias, runtime_checkable
 
 import numpy as np
 import structlog
@@ -37,13 +39,21 @@ TOPIC_PREFIX: Final[str] = "/openral/perception"
 """ROS 2 topics: ``/openral/perception/<kind>`` (Zenoh keys: ``openral/<robot>/perception/<kind>``)."""
 
 
+FrameBuffer: TypeAlias = np.ndarray | bytes | bytearray | memoryview
+"""A frame as detectors receive it: an appsink's flat BGR buffer, or an ``(H, W, 3)`` / ``(H, W)`` array."""
+
+
 class EventDetector(Protocol):
     """Finds one kind of event in a frame."""
 
     kind: str
 
-    def detect(self, frame_bgr: np.ndarray, width: int, height: int, sensor_id: str) -> BaseModel | None:
-        """What this frame shows (``None``: nothing worth an event). ``frame_bgr`` is ``(H, W, 3)`` BGR or grey."""
+    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> BaseModel | None:
+        """What this frame shows (``None``: nothing worth an event).
+
+        ``frame_bgr`` is ``width`` × ``height`` BGR: flat (an appsink's buffer) or shaped, or an
+        ``(H, W)`` grey array; :func:`frame_pixels` turns any of them into an array view.
+        """
         ...
 
     def summarise(self, metadata: Any) -> str:
@@ -57,6 +67,44 @@ class EventSink(Protocol):
     def publish(self, event: PerceptionEvent) -> None: ...
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class OpenableEventSink(Protocol):
+    """A sink that opens its link (a session that listens or connects) when the publisher starts, not when built."""
+
+    def open(self) -> None: ...
+
+
+def frame_pixels(frame: FrameBuffer, width: int, height: int) -> np.ndarray:
+    """``frame`` as ``(height, width, 3)`` BGR (or ``(height, width)`` grey) ``uint8``, a view where possible.
+
+    A flat buffer (bytes, a memoryview, a 1-D array) holds ``height`` rows of ``width * 3`` bytes,
+    each padded to a multiple of 4 bytes or not (GStreamer pads BGR rows): it is viewed, not
+    copied, padding cut off. A shaped array is taken as it is, once its size is checked.
+
+    Raises:
+        ValueError: A size that is not ``width`` × ``height``, or elements that are not bytes.
+    """
+    if width < 1 or height < 1:
+        raise ValueError(f"a frame is at least 1x1 pixels, got {width}x{height}")
+    array = frame if isinstance(frame, np.ndarray) else np.asarray(memoryview(frame))
+    if array.dtype != np.uint8:
+        raise ValueError(f"a frame holds uint8 pixels, got {array.dtype}")
+    row = width * 3
+    if array.ndim == 1:
+        stride = -(-row // 4) * 4
+        if array.size == row * height:
+            return array.reshape(height, width, 3)
+        if array.size == stride * height:
+            return array.reshape(height, stride)[:, :row].reshape(height, width, 3)
+        raise ValueError(
+            f"a {width}x{height} BGR frame is {row * height} bytes ({stride * height} with padded rows), "
+            f"got a buffer of {array.size}"
+        )
+    if array.shape[:2] == (height, width) and (array.ndim == 2 or (array.ndim == 3 and array.shape[2] >= 3)):
+        return array
+    raise ValueError(f"expected a {width}x{height} frame: (H, W, 3) BGR, (H, W) grey or flat, got shape {array.shape}")
 
 
 def grey_levels(frame: np.ndarray) -> np.ndarray:
@@ -97,8 +145,9 @@ class MotionDetector:
         self.min_cells = min_cells
         self._previous: dict[str, np.ndarray] = {}
 
-    def detect(self, frame_bgr: np.ndarray, width: int, height: int, sensor_id: str) -> MotionMetadata | None:
-        grey = grey_levels(frame_bgr)
+    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> MotionMetadata | None:
+        """Motion against this sensor's previous frame (``None`` for its first, or after a size change)."""
+        grey = grey_levels(frame_pixels(frame_bgr, width, height))
         previous = self._previous.get(sensor_id)
         self._previous[sensor_id] = grey
         if previous is None or previous.shape != grey.shape:
@@ -157,8 +206,9 @@ class SceneChangeDetector:
         counts = np.bincount(index.ravel(), minlength=self.bins).astype(np.float64)
         return counts / max(1.0, float(counts.sum()))
 
-    def detect(self, frame_bgr: np.ndarray, width: int, height: int, sensor_id: str) -> SceneChangeMetadata | None:
-        grey = grey_levels(frame_bgr)
+    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> SceneChangeMetadata | None:
+        """A scene change against this sensor's previous frame (``None`` for its first)."""
+        grey = grey_levels(frame_pixels(frame_bgr, width, height))
         current = (self.histogram(grey), float(grey.mean()))
         previous = self._previous.get(sensor_id)
         self._previous[sensor_id] = current
@@ -256,8 +306,15 @@ class PerceptionEventPublisher:
         return len(self._slots)
 
     def start(self) -> None:
-        """Start the worker. Idempotent."""
+        """Open the sinks that open a link, then start the worker. Idempotent.
+
+        Raises:
+            ROSConfigError: A sink cannot open its link (an endpoint in use, say).
+        """
         if self._thread is None:
+            for sink in self.sinks:
+                if isinstance(sink, OpenableEventSink):
+                    sink.open()
             self._closed = False
             self._thread = threading.Thread(target=self._work, name="openral-perception", daemon=True)
             self._thread.start()

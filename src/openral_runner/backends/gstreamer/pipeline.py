@@ -145,7 +145,7 @@ class PipelineSpec(BaseModel):
     def _element_name(cls, value: str) -> str:
         if not _ELEMENT_NAME.match(value):
             raise ValueError(
-                f"'{value}' is not a valid GStreamer element name: use letters, digits, '_' or '-', "
+                f"{value!r} is not a valid GStreamer element name: use letters, digits, '_' or '-', "
                 "starting with a letter or '_'"
             )
         return value
@@ -154,7 +154,7 @@ class PipelineSpec(BaseModel):
     @classmethod
     def _pattern(cls, value: str) -> str:
         if not _PATTERN.match(value):
-            raise ValueError(f"'{value}' is not a videotestsrc pattern name (e.g. smpte, ball, solid-color)")
+            raise ValueError(f"{value!r} is not a videotestsrc pattern name (e.g. smpte, ball, solid-color)")
         return value
 
     @model_validator(mode="after")
@@ -242,7 +242,7 @@ def ensure_appsink_name(pipeline: str, name: str) -> str:
         ROSConfigError: ``name`` is not a valid element name, or the pipeline has no appsink.
     """
     if not _ELEMENT_NAME.match(name):
-        raise ROSConfigError(f"'{name}' is not a valid GStreamer element name", field="appsink_name")
+        raise ROSConfigError(f"{name!r} is not a valid GStreamer element name", field="appsink_name")
     tokens = list(_TOKEN.finditer(pipeline))
     sinks: list[tuple[int, list[re.Match[str]]]] = []
     for index, token in enumerate(tokens):

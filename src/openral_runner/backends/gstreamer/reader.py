@@ -375,7 +375,7 @@ class GStreamerSensorReader(SlotReader):
         """``new-sample`` handler (streaming thread): one copy out of the buffer, publish."""
         arrival_ns = time.monotonic_ns()
         try:
-            sample = sink.pull_sample()
+            sample = sink.emit("pull-sample")  # the action signal: see ``gst`` on why not ``pull_sample()``
             if sample is None:  # flushing or EOS
                 return Gst.FlowReturn.OK
             frame = self._frame_from_sample(sample, sink, arrival_ns)
