@@ -27,7 +27,8 @@ from openral_cli.options import json_object
 from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
 from openral_cli.session import command_span
 from openral_cli.signals import StopSignals
-from openral_core import BenchmarkSuite, SimEnvironment
+from openral_core import BenchmarkRun, BenchmarkSuite, EpisodeResult, SimEnvironment
+from openral_core.config import load_model_yaml
 from openral_core.config_files import resolve_user_path
 
 _PROVENANCE_PACKAGES = (
@@ -220,54 +221,63 @@ def benchmark_run(
     video_dir: Path | None,
     as_json: bool,
 ) -> None:
-    """Evaluate every row of a suite; report success with 95 % intervals, latency percentiles and provenance."""
+    """Evaluate every row of a suite; report success with 95 % intervals, latency percentiles and provenance.
+
+    Every row's scene and skill are built once before the first episode, so a typo in the last row
+    fails at once. A row that fails while running ends the suite: the rows finished by then and the
+    failed row (marked, with its error) are still written, then the command exits non-zero.
+    """
+    build = importlib.import_module("openral_sim.build")
     evaluation = importlib.import_module("openral_sim.evaluation")
     code = EXIT_OK
     with exit_codes(bool(ctx.obj["debug"])):
         suite = BenchmarkSuite.from_yaml(config_path)
-        rows = []
         hasher = hashlib.sha256(config_path.read_bytes())
-        for index, run in enumerate(suite.runs):
-            scene_path = resolve_user_path(run.scene, config_path.parent, field=f"runs[{index}].scene")
-            scene = _scene(SimEnvironment.from_yaml(scene_path), run.n_episodes, run.seed)
-            if not run.render_cameras and video_dir is None:
-                scene = scene.model_copy(update={"cameras": []})
-            hasher.update(scene_path.read_bytes())
-            rows.append((run, scene))
-        results = []
+        rows = _resolve_rows(
+            suite, config_path, build, hasher, render_all=video_dir is not None, on_ray=ray_address is not None
+        )
+        results: list[dict[str, Any]] = []
         failed = []
+        error: BaseException | None = None
+        not_run: list[str] = []
         with _stdout_to_stderr(as_json):
-            for run, scene in rows:
+            for index, (run, scene) in enumerate(rows):
                 # A few units per worker: balanced load, and each pays the env's start-up once.
                 parts = 1 if workers == 1 and ray_address is None else 2 * workers
                 units = evaluation.split_episodes(scene, run.skill, run.skill_params, scene.n_episodes, parts)
                 if video_dir is not None:
                     units = evaluation.with_videos(units, video_dir, suite.videos)
-                batch = evaluation.run_units(units, workers=workers, ray_address=ray_address)
-                label = run.label or f"{scene.name}/{run.skill}"
+                try:
+                    batch = evaluation.run_units(units, workers=workers, ray_address=ray_address)
+                except build.SkillFailed as exc:
+                    error = exc
+                    results.append(_failed_row(run, scene, exc, exc.batch.episodes))
+                except (Exception, KeyboardInterrupt) as exc:
+                    error = exc
+                    results.append(_failed_row(run, scene, exc, []))
+                if error is not None:
+                    not_run = [_label(later, later_scene) for later, later_scene in rows[index + 1 :]]
+                    break
                 row = {
-                    "label": label,
-                    "scene": scene.name,
-                    "env": scene.env,
-                    "env_id": scene.env_id,
-                    "skill": run.skill,
-                    "skill_params": run.skill_params,
-                    "seeds": [scene.seed, scene.seed + scene.n_episodes - 1],
+                    **_row_head(run, scene),
+                    "status": "completed",
                     **evaluation.summarize(batch.episodes, batch),
                     "episodes": [e.model_dump(mode="json") for e in batch.episodes],
                 }
                 threshold = run.min_success if run.min_success is not None else min_success
                 row["min_success"] = threshold
                 if threshold is not None and row["pc_success"] < threshold:
-                    failed.append(f"{label}: {row['pc_success']:.1f} % < {threshold:g} %")
+                    failed.append(f"{row['label']}: {row['pc_success']:.1f} % < {threshold:g} %")
                 results.append(row)
                 if not as_json:
                     click.echo(_table_line(row), err=True)
-        document = {
+        document: dict[str, Any] = {
             "suite": suite.name,
             "results": results,
             "provenance": _provenance(hasher.hexdigest(), workers, ray_address),
         }
+        if error is not None:
+            document["not_run"] = not_run
         text = json.dumps(document, indent=2)
         if out is not None:
             out.write_text(text + "\n", encoding="utf-8")
@@ -275,10 +285,70 @@ def benchmark_run(
             click.echo(text)
         else:
             click.echo(_markdown_table(results))
+        if error is not None:
+            raise error
         if failed:
             click.echo("below --min-success: " + "; ".join(failed), err=True)
             code = EXIT_RUNTIME
     raise SystemExit(code)
+
+
+def _resolve_rows(
+    suite: BenchmarkSuite, config_path: Path, build: Any, hasher: Any, *, render_all: bool, on_ray: bool
+) -> list[tuple[BenchmarkRun, SimEnvironment]]:
+    """Every row's scene, with its environment and skill built once (and let go) before any episode runs.
+
+    On Ray the simulators may live only on the cluster: without them here, the names are checked.
+
+    Raises:
+        ROSConfigError: Naming the row's field (``runs[1].skill``, ``runs[0].scene``).
+    """
+    rows = []
+    specs: dict[str, Any] = {}
+    for index, run in enumerate(suite.runs):
+        field = f"runs[{index}].scene"
+        scene_path = resolve_user_path(run.scene, config_path.parent, field=field)
+        scene = _scene(load_model_yaml(SimEnvironment, scene_path, field=field), run.n_episodes, run.seed)
+        if not run.render_cameras and not render_all:
+            scene = scene.model_copy(update={"cameras": []})
+        key = scene.model_dump_json(exclude={"name", "n_episodes", "seed"})
+        fields = build.SkillFields.of_row(index)
+        specs[key] = build.check_evaluation(
+            scene, run.skill, run.skill_params, fields=fields, spec=specs.get(key), simulator_elsewhere=on_ray
+        )
+        hasher.update(scene_path.read_bytes())
+        rows.append((run, scene))
+    return rows
+
+
+def _label(run: BenchmarkRun, scene: SimEnvironment) -> str:
+    return run.label or f"{scene.name}/{run.skill}"
+
+
+def _row_head(run: BenchmarkRun, scene: SimEnvironment) -> dict[str, Any]:
+    """What a row of the report says about itself, whatever its outcome."""
+    return {
+        "label": _label(run, scene),
+        "scene": scene.name,
+        "env": scene.env,
+        "env_id": scene.env_id,
+        "skill": run.skill,
+        "skill_params": run.skill_params,
+        "seeds": [scene.seed, scene.seed + scene.n_episodes - 1],
+    }
+
+
+def _failed_row(
+    run: BenchmarkRun, scene: SimEnvironment, exc: BaseException, episodes: list[EpisodeResult]
+) -> dict[str, Any]:
+    """A row that failed while running: its error and the episodes it ran, and no success rate."""
+    message = str(exc) or "interrupted"
+    return {
+        **_row_head(run, scene),
+        "status": "failed",
+        "error": f"{type(exc).__name__}: {message}",
+        "episodes": [e.model_dump(mode="json") for e in episodes],
+    }
 
 
 def _table_line(row: dict[str, Any]) -> str:
@@ -292,6 +362,9 @@ def _markdown_table(rows: list[dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|",
     ]
     for row in rows:
+        if row["status"] == "failed":
+            lines.append(f"| {row['label']} | failed | — | — | — | — |")
+            continue
         low, high = row["pc_success_ci95"]
         steps = row["steps_to_success"]["p50"]
         tick = row["tick_ms"]

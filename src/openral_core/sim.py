@@ -124,7 +124,12 @@ class EpisodeResult(BaseModel):
     steps_to_success: int | None = None
     sum_reward: float = 0.0
     max_reward: float = 0.0
-    ended_by: Literal["success", "terminated", "truncated", "max_steps", "skill_done"] = "max_steps"
+    ended_by: Literal["success", "terminated", "truncated", "max_steps", "skill_done", "faults", "stopped"] = (
+        "max_steps"
+    )
+    """What ended the episode: the task (``success``, ``terminated``, ``truncated``, ``max_steps``), the
+    skill (``skill_done``), the fault limit (``faults``: the skill kept failing), or a stop of the run
+    (``stopped``: a signal, an e-stop)."""
     timing: EpisodeTiming = Field(default_factory=EpisodeTiming)
 
     def outcome(self) -> dict[str, Any]:

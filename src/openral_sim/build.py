@@ -6,12 +6,113 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from openral_core import EpisodeResult, SimEnvironment, TickResult, WorldState
+from openral_core import (
+    EpisodeResult,
+    ROSConfigError,
+    ROSDependencyMissing,
+    ROSSkillError,
+    SimEnvironment,
+    TickResult,
+    WorldState,
+)
 from openral_rskill.base import RSkillBase
 from openral_runner.factory import SKILL_REGISTRY
 from openral_runner.observer import TickObserver
 from openral_sim.env import EnvSpec, make_env
 from openral_sim.runner import SimRunner
+
+_PARAMS_PREFIXES = ("vla.params", "params")
+"""Where a skill's parameter errors point (a deployment's ``vla.params``); in simulation, the skill's parameters."""
+
+
+@dataclass(frozen=True)
+class SkillFields:
+    """How errors name the skill, its parameters and the scene: the options of ``sim run``, or a suite's row.
+
+    Attributes:
+        scene: Named before a scene's own field in its errors (``runs[0].scene: env: ...``);
+            ``None`` names the scene's fields alone (the scene is the ``--config`` file).
+    """
+
+    skill: str = "--skill"
+    params: str = "--skill-params"
+    scene: str | None = None
+
+    @classmethod
+    def of_row(cls, index: int) -> SkillFields:
+        """The fields of row ``index`` of a benchmark suite."""
+        return cls(skill=f"runs[{index}].skill", params=f"runs[{index}].skill_params", scene=f"runs[{index}].scene")
+
+    def in_scene(self, exc: ROSConfigError) -> ROSConfigError:
+        """``exc``, about a field of the scene, naming the scene first."""
+        if self.scene is None or type(exc) is not ROSConfigError:
+            return exc
+        return ROSConfigError(str(exc), field=self.scene)
+
+
+OPTION_FIELDS = SkillFields()
+"""The fields of ``openral sim run``: its ``--skill`` and ``--skill-params`` options."""
+
+
+def build_skill(
+    scene: SimEnvironment,
+    spec: EnvSpec,
+    skill_id: str,
+    skill_params: Mapping[str, Any] | None = None,
+    *,
+    fields: SkillFields = OPTION_FIELDS,
+) -> RSkillBase:
+    """The skill, unconfigured, built against ``spec``'s action space (its parameters validated).
+
+    Raises:
+        ROSConfigError: An unknown skill or bad parameters, naming ``fields``.
+    """
+    manifest = spec.action_manifest(scene.robot or scene.env)
+    skill_class = SKILL_REGISTRY.resolve(skill_id, field=fields.skill)
+    try:
+        skill: RSkillBase = skill_class.from_config(dict(skill_params or {}), robot=manifest, rate_hz=spec.control_hz)
+    except ROSConfigError as exc:
+        raise _renamed(exc, fields.params) from exc
+    return skill
+
+
+def check_evaluation(
+    scene: SimEnvironment,
+    skill_id: str,
+    skill_params: Mapping[str, Any] | None = None,
+    *,
+    fields: SkillFields = OPTION_FIELDS,
+    spec: EnvSpec | None = None,
+    simulator_elsewhere: bool = False,
+) -> EnvSpec | None:
+    """Build the scene's environment and the skill (and the scene's fallback skill) once, and let them go.
+
+    What a run would refuse is refused here, before any episode of any run: an unknown
+    environment or skill, bad parameters. Returns the environment's spec, to pass back as
+    ``spec`` for the next check of the same scene (the environment is then not built again).
+
+    Args:
+        simulator_elsewhere: The episodes run on other machines (Ray): when this one lacks the
+            simulator's package, only the names are checked here, and ``None`` is returned.
+
+    Raises:
+        ROSConfigError: Naming ``fields`` for the skill, the scene's own fields otherwise.
+    """
+    try:
+        if spec is None:
+            env = make_env(scene)
+            spec = env.spec
+            env.close()
+        _fallback_skill(scene, spec)
+    except ROSDependencyMissing:
+        if not simulator_elsewhere:
+            raise
+        SKILL_REGISTRY.resolve(skill_id, field=fields.skill)
+        return None
+    except ROSConfigError as exc:
+        raise fields.in_scene(exc) from exc
+    build_skill(scene, spec, skill_id, skill_params, fields=fields)
+    return spec
 
 
 def build_sim_runner(
@@ -21,6 +122,7 @@ def build_sim_runner(
     *,
     first_episode: int = 0,
     n_episodes: int | None = None,
+    fields: SkillFields = OPTION_FIELDS,
     **runner_kwargs: Any,
 ) -> SimRunner:
     """The scene's environment, the skill built against its action space, and the runner around them.
@@ -32,25 +134,59 @@ def build_sim_runner(
     """
     env = make_env(scene)
     try:
-        manifest = env.spec.action_manifest(scene.robot or scene.env)
-        skill_class = SKILL_REGISTRY.resolve(skill_id, field="--skill")
-        skill: RSkillBase = skill_class.from_config(
-            dict(skill_params or {}), robot=manifest, rate_hz=env.spec.control_hz
-        )
-        fallback = scene.executor.fallback_skill
+        skill = build_skill(scene, env.spec, skill_id, skill_params, fields=fields)
+        fallback = _fallback_skill(scene, env.spec)
         if fallback is not None:
-            runner_kwargs.setdefault(
-                "fallback_skill",
-                SKILL_REGISTRY.resolve(fallback.id, field="executor.fallback_skill.id").from_config(
-                    fallback.params, robot=manifest, rate_hz=env.spec.control_hz
-                ),
-            )
+            runner_kwargs.setdefault("fallback_skill", fallback)
         return SimRunner(
             env=env, scene=scene, skill=skill, first_episode=first_episode, n_episodes=n_episodes, **runner_kwargs
         )
     except BaseException:
         env.close()
         raise
+
+
+def _fallback_skill(scene: SimEnvironment, spec: EnvSpec) -> RSkillBase | None:
+    """The skill that acts while the scene's chunking skill is starved, if the scene names one."""
+    fallback = scene.executor.fallback_skill
+    if fallback is None:
+        return None
+    manifest = spec.action_manifest(scene.robot or scene.env)
+    skill: RSkillBase = SKILL_REGISTRY.resolve(fallback.id, field="executor.fallback_skill.id").from_config(
+        fallback.params, robot=manifest, rate_hz=spec.control_hz
+    )
+    return skill
+
+
+def _renamed(exc: ROSConfigError, prefix: str) -> ROSConfigError:
+    """``exc`` naming the skill's parameters as ``prefix`` (a skill names them as a deployment's ``vla.params``)."""
+    field = exc.field
+    if type(exc) is not ROSConfigError or field is None:
+        return exc
+    for old in _PARAMS_PREFIXES:
+        if field == old or field.startswith(f"{old}."):
+            return ROSConfigError(str(exc).removeprefix(f"{field}: "), field=prefix + field.removeprefix(old))
+    return exc
+
+
+class SkillFailed(ROSSkillError):
+    """The skill kept failing and the fault limit stopped the episodes: they are no evaluation of it.
+
+    Args:
+        message: What failed (the skill's own error when it raised one).
+        batch: The episodes run until then (the last one ``ended_by="faults"``).
+    """
+
+    def __init__(self, message: str, *, batch: EpisodeBatch) -> None:
+        super().__init__(message)
+        self.batch = batch
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_rebuild_skill_failed, (str(self), self.batch))
+
+
+def _rebuild_skill_failed(message: str, batch: EpisodeBatch) -> SkillFailed:
+    return SkillFailed(message, batch=batch)
 
 
 @dataclass
@@ -60,6 +196,17 @@ class EpisodeBatch:
     episodes: list[EpisodeResult]
     tick_ms: list[float] = field(default_factory=list)
     inference_ms: list[float] = field(default_factory=list)
+    failure: str | None = None
+    """Set when the skill kept failing and the fault limit stopped the episodes (see :class:`SkillFailed`)."""
+
+    def raise_for_failure(self) -> None:
+        """Raise if the episodes were stopped by a failing skill.
+
+        Raises:
+            SkillFailed: Carrying this batch.
+        """
+        if self.failure is not None:
+            raise SkillFailed(self.failure, batch=self)
 
 
 def run_episodes(
@@ -72,6 +219,7 @@ def run_episodes(
     observers: Sequence[Callable[[EnvSpec], TickObserver]] = (),
     recorder: Callable[[EnvSpec], TickObserver] | None = None,
     on_runner: Callable[[SimRunner], None] | None = None,
+    fields: SkillFields = OPTION_FIELDS,
 ) -> EpisodeBatch:
     """Run episodes ``first_episode ..`` of ``scene`` with the skill, start to finish, and return their outcomes.
 
@@ -80,8 +228,15 @@ def run_episodes(
             closed with the runner.
         recorder: Makes the recorder of the episodes (a ``RolloutRecorder``) for the env's spaces.
         on_runner: Called with the active runner before the first tick (a signal handler's hook).
+        fields: How errors name the skill and its parameters.
+
+    Raises:
+        SkillFailed: The skill kept failing until the fault limit stopped the episodes (the
+            episodes run until then are in its ``batch``).
     """
-    runner = build_sim_runner(scene, skill_id, skill_params, first_episode=first_episode, n_episodes=n_episodes)
+    runner = build_sim_runner(
+        scene, skill_id, skill_params, first_episode=first_episode, n_episodes=n_episodes, fields=fields
+    )
     made: list[TickObserver] = []
     try:
         if recorder is not None:
@@ -109,6 +264,8 @@ def run_episodes(
     finally:
         runner.deactivate()
         skill.shutdown()
+    batch.failure = runner.failure
+    batch.raise_for_failure()
     return batch
 
 

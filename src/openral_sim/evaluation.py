@@ -20,7 +20,7 @@ import numpy as np
 
 from openral_core import EpisodeResult, ROSConfigError, ROSDependencyMissing, SimEnvironment
 from openral_runner.observer import TickObserver
-from openral_sim.build import EpisodeBatch, run_episodes
+from openral_sim.build import EpisodeBatch, SkillFailed, run_episodes
 from openral_sim.env import EnvSpec
 
 WILSON_Z_95 = 1.959963984540054
@@ -67,20 +67,27 @@ def split_episodes(
 
 
 def run_unit(unit: EpisodeUnit) -> EpisodeBatch:
-    """Run one unit start to finish (in whatever process or Ray worker calls this)."""
+    """Run one unit start to finish (in whatever process or Ray worker calls this).
+
+    A skill that kept failing is reported in the batch (``failure``), not raised: the caller
+    merges every unit's episodes first, then raises.
+    """
     observers = []
     if unit.video_dir is not None and unit.first_episode < unit.videos and unit.scene.cameras:
         observers.append(
             video_writer(unit.scene, Path(unit.video_dir), unit.videos, f"{unit.scene.name}_{unit.skill_id}")
         )
-    return run_episodes(
-        unit.scene,
-        unit.skill_id,
-        unit.skill_params,
-        first_episode=unit.first_episode,
-        n_episodes=unit.n_episodes,
-        observers=observers,
-    )
+    try:
+        return run_episodes(
+            unit.scene,
+            unit.skill_id,
+            unit.skill_params,
+            first_episode=unit.first_episode,
+            n_episodes=unit.n_episodes,
+            observers=observers,
+        )
+    except SkillFailed as exc:
+        return exc.batch
 
 
 def video_writer(scene: SimEnvironment, folder: Path, episodes: int, prefix: str) -> Callable[[EnvSpec], TickObserver]:
@@ -121,6 +128,9 @@ def run_units(units: Sequence[EpisodeUnit], *, workers: int = 1, ray_address: st
         ray_address: Run the units as Ray tasks: ``auto`` (a running cluster), ``local`` (start
             one here), or a cluster address (``ray://host:10001``). A Ray already initialised in
             this process is used as it is.
+
+    Raises:
+        SkillFailed: The skill kept failing in some unit (every unit's episodes are in its ``batch``).
     """
     if ray_address is not None:
         batches = _run_on_ray(units, ray_address)
@@ -129,16 +139,25 @@ def run_units(units: Sequence[EpisodeUnit], *, workers: int = 1, ray_address: st
         with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
             batches = list(pool.map(run_unit, units))
     else:
-        batches = [run_unit(unit) for unit in units]
-    return merge_batches(batches)
+        batches = []
+        for unit in units:
+            batches.append(run_unit(unit))
+            if batches[-1].failure is not None:
+                break  # as one process running every episode stops at the fault limit
+    merged = merge_batches(batches)
+    merged.raise_for_failure()
+    return merged
 
 
 def merge_batches(batches: Sequence[EpisodeBatch]) -> EpisodeBatch:
+    """The batches' episodes in episode order; the failure of the first failed batch (in the given order)."""
     merged = EpisodeBatch(episodes=[])
     for batch in batches:
         merged.episodes.extend(batch.episodes)
         merged.tick_ms.extend(batch.tick_ms)
         merged.inference_ms.extend(batch.inference_ms)
+        if merged.failure is None:
+            merged.failure = batch.failure
     merged.episodes.sort(key=lambda e: e.episode_idx)
     return merged
 

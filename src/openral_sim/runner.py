@@ -8,6 +8,10 @@ steps the env with the hold action, as a robot keeps holding). Step ticks carry 
 (:attr:`SimRunner.episode_results`) are derived from them, and ``run()`` ends once
 ``n_episodes`` are done.
 
+A skill that keeps failing stops the run at the fault limit, as on a robot: the episode under way
+ends as ``faults`` (never as a cut-off at ``max_steps``) and is not kept by a recorder, and
+:attr:`SimRunner.failure` says what failed, so a broken skill never reads as a 0 % success rate.
+
 Observers hear the episode boundaries as on hardware, so a ``RolloutRecorder`` records simulated
 episodes through the same path.
 """
@@ -28,6 +32,7 @@ from openral_core import (
     PrivilegedState,
     ROSConfigError,
     SimEnvironment,
+    StopReason,
     TickResult,
     WithheldReason,
     WorldState,
@@ -94,6 +99,7 @@ class SimRunner(SkillRunnerBase):
         self._episode: _EpisodeTally | None = None
         self._frame_seq = 0
         self._opened = False
+        self._failure: str | None = None
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -101,11 +107,12 @@ class SimRunner(SkillRunnerBase):
         """Start the telemetry worker; the first tick resets the env into the first episode."""
         super().activate()
         self._opened = True
+        self._failure = None
 
     def deactivate(self) -> None:
-        """End an episode under way (as not successful, and kept), close the observers and the env."""
+        """End an episode under way (as stopped: not successful, and kept), close the observers and the env."""
         if self._episode is not None:
-            self._finish_episode("max_steps", success=False)
+            self._finish_episode("stopped", success=False)
         super().deactivate()
         if self._opened:
             self._opened = False
@@ -117,11 +124,22 @@ class SimRunner(SkillRunnerBase):
             self.env.close()
 
     def _should_terminate(self) -> bool:
+        if self.stop_requested is StopReason.FAULTS:
+            return False  # the run ends on its faults, even when the faulted episode was the last
         return len(self.episode_results) >= self.n_episodes
 
     @property
     def episodes_done(self) -> int:
         return len(self.episode_results)
+
+    @property
+    def failure(self) -> str | None:
+        """What stopped the run at the fault limit (the skill's own error when it raised one), else ``None``.
+
+        Such a run is no evaluation of the skill: its episodes were cut short by failures, not
+        judged by the task.
+        """
+        return self._failure
 
     # -- the tick --------------------------------------------------------------------------
 
@@ -212,15 +230,22 @@ class SimRunner(SkillRunnerBase):
     def _run_tick(self, tick: TickContext, *, slot_start_s: float | None = None) -> TickResult:
         """Run the tick; an episode it ended is closed after the observers have seen its last step."""
         result = super()._run_tick(tick, slot_start_s=slot_start_s)
+        faulted = self.stop_requested is StopReason.FAULTS
+        if faulted and self._failure is None:
+            self._failure = self._describe_failure(result)
         episode = self._episode
         if episode is not None and result.step_idx is not None:
             episode.step_ms_total += result.tick_ms
             episode.step_ms_max = max(episode.step_ms_max, result.tick_ms)
             if self.latency_budget_ms is not None and result.tick_ms > self.latency_budget_ms:
                 episode.budget_violations += 1
-            if episode.pending_end is not None:
+            ended_by = episode.pending_end
+            if faulted and ended_by in (None, "max_steps"):
+                # The fault limit cut the episode short: not an episode of the task, and not a demonstration.
+                self._finish_episode("faults", success=episode.steps_to_success is not None, keep=False)
+            elif ended_by is not None:
                 self._require_success_key(episode)
-                self._finish_episode(episode.pending_end, success=episode.steps_to_success is not None)
+                self._finish_episode(ended_by, success=episode.steps_to_success is not None)
         if self.free_running:
             # No tick has a deadline here: rather than outrun a recorder and lose frames, wait for it.
             for observer in self.observers:
@@ -233,7 +258,28 @@ class SimRunner(SkillRunnerBase):
         if self._episode is not None:
             self._episode.skill_done = True
 
-    def _finish_episode(self, ended_by: str, *, success: bool) -> None:
+    def _describe_failure(self, result: TickResult) -> str:
+        """What stopped the run at the fault limit: the skill's latched exception, else the withheld reason."""
+        skill_id = self.skill.info.skill_id
+        error = self.skill.last_error
+        if error is not None:
+            detail = f"{type(error).__name__}: {error}"
+        elif result.withheld_reason == WithheldReason.INVALID_ACTION:
+            detail = "it returned invalid actions (the log names the problem)"
+        elif result.withheld_reason == WithheldReason.STARVED:
+            detail = "its chunks stopped arriving (starved, or the policy's source is down)"
+        else:
+            detail = f"its actions were withheld ({result.withheld_reason or 'faults'})"
+        where = "" if result.episode_idx is None else f" in episode {result.episode_idx}"
+        if result.step_idx is not None:
+            where += f" (step {result.step_idx + 1})"
+        return (
+            f"skill '{skill_id}' failed, and the run stopped at the fault limit{where}: {detail} "
+            "(no success rate is computed for a skill that cannot run: fix the skill, its parameters, "
+            "or the scene it runs on)"
+        )
+
+    def _finish_episode(self, ended_by: str, *, success: bool, keep: bool = True) -> None:
         episode = self._episode
         assert episode is not None
         self._episode = None
@@ -255,7 +301,7 @@ class SimRunner(SkillRunnerBase):
             ),
         )
         self.episode_results.append(result)
-        self._tell_episode_end(episode.index, success=success)
+        self._tell_episode_end(episode.index, success=success, keep=keep)
 
     def _success(self, observation: SimObservation, episode: _EpisodeTally) -> bool:
         key = self.scene.success_key

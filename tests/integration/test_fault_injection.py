@@ -11,9 +11,7 @@ from __future__ import annotations
 import json
 import math
 import signal
-import subprocess
-import sys
-import time
+import threading
 from pathlib import Path
 
 import pytest
@@ -37,9 +35,11 @@ from openral_world_state import WorldStateAggregator
 
 pytest.importorskip("serial", reason="needs the 'serial' extra (pyserial) for the servo-bus rows")
 
+from openral_hal.feetech import protocol as p
 from openral_hal.feetech.calibration import ArmCalibration, save_calibration
 from openral_hal.feetech.emulator import ServoBusEmulator
 from openral_hal.feetech.hal import SO10xFollowerHAL
+from openral_hal.feetech.protocol import Instruction, Register
 from openral_runner.safety import SafetyClient
 
 ROBOT = load_robot_manifest("so101_follower")
@@ -61,6 +61,32 @@ def serial_hal(bus: ServoBusEmulator, tmp_path: Path, **params: object) -> SO10x
     return SO10xFollowerHAL(
         ROBOT, {"port": bus.port, "calibration": str(calibration), "timeout_s": 0.02, "retries": 2, **params}
     )
+
+
+def bus_caught_up(hal: SO10xFollowerHAL) -> None:
+    """Return once the emulator has applied every packet the HAL wrote before now.
+
+    Writes get no reply to wait for; a read does, and the emulator answers the line in order, so
+    the read's reply comes after everything written before it.
+    """
+    hal.read_state()
+
+
+def first_tick(bus: ServoBusEmulator) -> threading.Event:
+    """Set once the runner writes a goal after start-up turned torque on: that goal is a tick's command."""
+    torque_on = threading.Event()
+    ticking = threading.Event()
+
+    def on_request(packet: p.Packet) -> None:
+        if packet.code != Instruction.SYNC_WRITE:
+            return
+        if packet.params[0] == Register.TORQUE_ENABLE and packet.params[3] == 1:
+            torque_on.set()
+        elif packet.params[0] == Register.GOAL_POSITION and torque_on.is_set():
+            ticking.set()
+
+    bus.on_request = on_request
+    return ticking
 
 
 def runner_for(
@@ -100,7 +126,7 @@ def test_servo_timeout_is_retried_and_the_tick_goes_on(tmp_path: Path) -> None:
         runner = runner_for(hal, ScriptedSkill(NAMES, hold=[0.0] * 6))
         runner.activate()
         try:
-            time.sleep(0.05)  # let the emulator finish the writes of connect() (they get no reply)
+            bus_caught_up(hal)  # the writes of connect() get no reply: they must not take the dropped replies
             bus.drop_replies = 2  # two lost replies: within the bus's retry budget
             result = runner.run(10)
             timeouts = hal._bus().stats.timeouts
@@ -154,7 +180,7 @@ def test_bus_gone_mid_run_withholds_then_stops_safely(tmp_path: Path) -> None:
         runner.activate()
         try:
             runner.run(5)
-            time.sleep(0.05)
+            bus_caught_up(hal)
             goals_before = bus.goals()
             bus.disconnect()
             result = runner.run(50)
@@ -252,7 +278,7 @@ def test_estop_stops_the_loop_and_holds_the_arm(tmp_path: Path) -> None:
         runner.activate()
         try:
             result = runner.run(50)
-            time.sleep(0.1)
+            bus_caught_up(hal)  # the hold written at the e-stop has been applied
             goals, positions = bus.goals(), bus.positions()
         finally:
             runner.deactivate()
@@ -262,25 +288,25 @@ def test_estop_stops_the_loop_and_holds_the_arm(tmp_path: Path) -> None:
         assert all(abs(goals[i] - positions[i]) <= 40 for i in IDS)
 
 
-def test_sigint_and_sigterm_finish_the_tick_and_exit_130_143(tmp_path: Path) -> None:
+def test_sigint_and_sigterm_finish_the_tick_and_exit_130_143(tmp_path: Path, deploy_process) -> None:
+    calibration = tmp_path / "so101.json"
+    save_calibration(ArmCalibration.from_manifest(ROBOT), calibration)
     deployment = tmp_path / "robot.yaml"
-    deployment.write_text(
-        "hal: {robot_id: so101_follower, adapter: so10x_follower, params: {emulate: true}}\nvla: {id: hello}\n"
-    )
     for sig, code in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "openral_cli", "deploy", "--config", str(deployment), "--json"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        time.sleep(3.0)
-        proc.send_signal(sig)
-        stdout, stderr = proc.communicate(timeout=30)
-        assert proc.returncode == code, stderr
-        result = json.loads(stdout)
-        assert result["stop_reason"] == f"signal:{sig.name}"
-        assert result["n_ticks"] > 0
+        with ServoBusEmulator(IDS) as bus:
+            deployment.write_text(
+                "hal: {robot_id: so101_follower, adapter: so10x_follower, "
+                f"params: {{port: {bus.port}, calibration: {calibration}}}}}\nvla: {{id: hello}}\n"
+            )
+            ticking = first_tick(bus)
+            proc = deploy_process(["deploy", "--config", str(deployment), "--json"])
+            assert ticking.wait(60), proc.stderr
+            proc.proc.send_signal(sig)  # the process alone, in the middle of a run
+            returncode, stdout = proc.finish(timeout=30)
+            assert returncode == code, proc.stderr
+            result = json.loads(stdout)
+            assert result["stop_reason"] == f"signal:{sig.name}"
+            assert result["n_ticks"] > 0
 
 
 def test_reader_failing_at_activate_leaves_the_arm_disconnected(tmp_path: Path) -> None:

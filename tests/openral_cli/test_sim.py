@@ -111,3 +111,74 @@ def test_benchmark_run_reports_every_row_with_provenance_and_fails_below_min_suc
     assert provenance["workers"] == 2
     passing = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--min-success", "0"])
     assert passing.exit_code == 0, passing.output
+
+
+def test_sim_run_with_a_skill_failing_every_step_exits_1_with_its_error_not_a_0_percent_result() -> None:
+    # The SO-101 expert needs privileged values the mock scene does not expose: every step fails.
+    proc = subprocess.run(
+        [sys.executable, "-m", "openral_cli", "sim", "run", "--config", str(MOCK_SCENE), "--skill",
+         "so101_pick_expert", "--n-episodes", "4", "--no-cameras", "--json"],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stdout == ""  # no success rate is reported for a skill that cannot run
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1, proc.stderr
+    assert "so101_pick_expert" in errors[0]
+    assert "no privileged value 'grasp_pos'" in errors[0]
+
+
+def _suite(tmp_path: Path, *rows: str) -> Path:
+    return _write(tmp_path / "suite.yaml", "name: tiny\nruns:\n" + "".join(f"  - {row}\n" for row in rows))
+
+
+def test_benchmark_refuses_a_typo_in_a_later_row_before_any_episode_runs(tmp_path: Path) -> None:
+    suite = _suite(
+        tmp_path,
+        f"{{scene: {MOCK_SCENE}, skill: mock_reach_expert, n_episodes: 2}}",
+        f"{{scene: {MOCK_SCENE}, skill: randm, n_episodes: 2}}",
+    )
+    out = tmp_path / "bench.json"
+    result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--out", str(out)])
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1, result.output  # no row ran: no progress line before the error
+    assert lines[0].startswith("error: runs[1].skill: unknown skill 'randm'")
+    assert "did you mean 'random'" in lines[0]
+    assert not out.exists()
+
+
+def test_benchmark_names_a_rows_bad_skill_parameter(tmp_path: Path) -> None:
+    suite = _suite(
+        tmp_path,
+        f"{{scene: {MOCK_SCENE}, skill: zero, n_episodes: 1}}",
+        f"{{scene: {MOCK_SCENE}, skill: random, n_episodes: 1, skill_params: {{sede: 1}}}}",
+    )
+    result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite)])
+    assert result.exit_code == 2
+    assert "error: runs[1].skill_params.sede: unknown key 'sede'" in result.output
+
+
+def test_benchmark_writes_the_finished_rows_and_the_failed_one_when_a_row_fails_while_running(tmp_path: Path) -> None:
+    suite = _suite(
+        tmp_path,
+        f"{{scene: {MOCK_SCENE}, skill: mock_reach_expert, n_episodes: 2}}",
+        f"{{scene: {MOCK_SCENE}, skill: so101_pick_expert, n_episodes: 3, label: broken}}",
+        f"{{scene: {MOCK_SCENE}, skill: zero, n_episodes: 2, label: after}}",
+    )
+    out = tmp_path / "bench.json"
+    result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--out", str(out)])
+    assert result.exit_code == 1, result.output
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1, result.output
+    assert "grasp_pos" in errors[0]
+    document = json.loads(out.read_text())
+    finished, failed = document["results"]
+    assert finished["status"] == "completed"
+    assert finished["pc_success"] == 100.0
+    assert failed["label"] == "broken"
+    assert failed["status"] == "failed"
+    assert "grasp_pos" in failed["error"]
+    assert "pc_success" not in failed  # a broken skill has no success rate, not 0 %
+    assert [e["ended_by"] for e in failed["episodes"]] == ["faults"]
+    assert document["not_run"] == ["after"]

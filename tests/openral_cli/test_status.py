@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import time
+from collections.abc import Callable
 
 from rich.console import Console
 from rich.text import Text
@@ -27,6 +28,14 @@ STATUS = {
 }
 
 
+def wait_until(condition: Callable[[], bool], timeout_s: float = 30.0) -> None:
+    """Poll ``condition`` until it holds: the status thread's pace depends on the machine's load."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "the status never got there"
+        time.sleep(0.005)
+
+
 class FakeRunner:
     def __init__(self) -> None:
         self.calls = 0
@@ -48,7 +57,7 @@ def test_plain_lines_when_the_stream_is_not_a_terminal() -> None:
     runner = FakeRunner()
     with LiveStatus(runner, stream, plain_interval_s=0.02) as status:
         assert not status.is_live
-        time.sleep(0.2)
+        wait_until(lambda: stream.getvalue().count("\n") >= 2)
     lines = stream.getvalue().splitlines()
     assert len(lines) >= 2
     assert all(line == format_status(STATUS) for line in lines)
@@ -61,7 +70,7 @@ def test_live_panel_on_a_terminal() -> None:
     runner = FakeRunner()
     with LiveStatus(runner, stream, title="so101_twin", console=console, refresh_per_second=20) as status:
         assert status.is_live
-        time.sleep(0.3)
+        wait_until(lambda: runner.calls >= 3)
     assert runner.calls >= 3  # refreshed repeatedly, not drawn once
     raw = stream.getvalue()
     assert "\x1b[1;31m5" in raw  # safety violations stand out in bold red

@@ -39,14 +39,18 @@ def test_ping_read_write(bus: FeetechBus, emu: ServoBusEmulator) -> None:
 def test_sync_write_moves_servos_toward_goal_over_the_pty(bus: FeetechBus, emu: ServoBusEmulator) -> None:
     bus.sync_write(p.Register.TORQUE_ENABLE, dict.fromkeys(IDS, b"\x01"))
     bus.sync_write(p.Register.GOAL_POSITION, {1: p.u16(2348), 2: p.u16(1748), 3: p.u16(2048)})
-    time.sleep(0.05)
+    # The first reading that shows motion (~100 ms before arrival): moving, not teleported.
+    deadline = time.monotonic() + 5
     mid = bus.sync_read(IDS, p.Register.PRESENT_POSITION, 4)
+    while p.from_u16(mid[1]) == 2048 and time.monotonic() < deadline:
+        mid = bus.sync_read(IDS, p.Register.PRESENT_POSITION, 4)
     pos1, speed1 = p.from_u16(mid[1]), p.decode_sign_magnitude(p.from_u16(mid[1], 2))
     assert 2048 < pos1 < 2348  # moving at ~3000 ticks/s, not teleported
     assert speed1 > 0
     assert p.decode_sign_magnitude(p.from_u16(mid[2], 2)) < 0
-    time.sleep(0.15)
     done = bus.sync_read(IDS, p.Register.PRESENT_POSITION, 2)
+    while p.from_u16(done[1]) != 2348 and time.monotonic() < deadline:
+        done = bus.sync_read(IDS, p.Register.PRESENT_POSITION, 2)
     assert {i: p.from_u16(v) for i, v in done.items()} == {1: 2348, 2: 1748, 3: 2048}
 
 

@@ -88,13 +88,15 @@ def test_send_action_moves_the_arm_toward_goal(emu: ServoBusEmulator, cal_file: 
     with_hal.connect()
     try:
         hal.send_action(_action(shoulder_pan=0.3, elbow_flex=-0.2))
-        time.sleep(0.03)
-        mid = hal.read_state()
+        # The first reading that shows motion (~65 ms before arrival): moving, not teleported.
+        readings = [hal.read_state()]
+        assert _eventually(lambda: readings.append(hal.read_state()) or readings[-1].positions[0] > 0.0)
+        mid = readings[-1]
         assert 0.0 < mid.positions[0] < 0.3
         assert mid.velocities is not None
         assert mid.velocities[0] > 1.0
         assert mid.velocities[2] < -1.0
-        time.sleep(0.15)
+        assert _eventually(lambda: abs(hal.read_state().positions[0] - 0.3) <= RAD_PER_TICK)
         end = hal.read_state()
         assert end.positions[0] == pytest.approx(0.3, abs=RAD_PER_TICK)
         assert end.positions[2] == pytest.approx(-0.2, abs=RAD_PER_TICK)

@@ -200,6 +200,7 @@ def test_rest_pose_sags_under_gravity(twin: MujocoTwinHAL) -> None:
 
 def test_commanded_target_is_reached_by_motion_not_by_assignment(twin: MujocoTwinHAL) -> None:
     target = [0.5, -0.5, 0.5, 0.5, 0.3, 0.8]
+    commanded_at = twin.sim_time_s
     twin.send_action(Action(joint_names=NAMES, targets=[target]))
 
     # Straight after the command the arm has barely started (20 ms later the pan joint is still
@@ -207,7 +208,7 @@ def test_commanded_target_is_reached_by_motion_not_by_assignment(twin: MujocoTwi
     early = twin.read_state()
     assert abs(early.position_of("shoulder_pan") - 0.5) > 0.25
 
-    time.sleep(1.0)
+    _wait_until(lambda: twin.sim_time_s >= commanded_at + 1.0, 30.0)  # 1 s of motion, however loaded the machine
     settled = twin.read_state()
     # After 1 s the largest error is 0.027 rad (elbow_flex, gravity sag) as measured; allow 0.05.
     errors = np.abs(np.subtract(settled.positions, target))
@@ -216,8 +217,9 @@ def test_commanded_target_is_reached_by_motion_not_by_assignment(twin: MujocoTwi
 
 def test_joints_an_action_does_not_name_keep_their_targets(twin: MujocoTwinHAL) -> None:
     rest = twin.read_state()
+    commanded_at = twin.sim_time_s
     twin.send_action(Action(joint_names=["shoulder_pan"], targets=[[0.6]]))
-    time.sleep(0.7)
+    _wait_until(lambda: twin.sim_time_s >= commanded_at + 0.7, 30.0)
     state = twin.read_state()
     assert state.position_of("shoulder_pan") == pytest.approx(0.6, abs=0.03)
     assert state.position_of("elbow_flex") == pytest.approx(rest.position_of("elbow_flex"), abs=0.01)
@@ -260,8 +262,8 @@ def test_estop_holds_the_arm_where_it_is(twin: MujocoTwinHAL) -> None:
     assert moving.position_of("shoulder_pan") <= held < 1.2
 
     samples = []
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 1.0:
+    stopped_at = twin.sim_time_s
+    while twin.sim_time_s - stopped_at < 1.0:  # 1 s of simulated motion after the e-stop
         samples.append(twin.read_state().positions)
         time.sleep(0.01)
     trace = np.array(samples)

@@ -12,6 +12,7 @@ import pytest
 from openral_core import (
     EpisodeResult,
     ROSConfigError,
+    ROSRuntimeError,
     SimCamera,
     SimEnvironment,
     StopReason,
@@ -21,7 +22,7 @@ from openral_core import (
 )
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.observer import TickObserver
-from openral_sim.build import build_sim_runner, run_episodes
+from openral_sim.build import SkillFailed, build_sim_runner, run_episodes
 from openral_sim.envs.mock import MockParams, MockReachEnv
 from openral_sim.runner import SimRunner
 
@@ -44,7 +45,7 @@ class TickLog(TickObserver):
     def __init__(self) -> None:
         self.ticks: list[TickResult] = []
         self.worlds: list[WorldState | None] = []
-        self.boundaries: list[tuple[str, int, Any]] = []
+        self.boundaries: list[tuple[Any, ...]] = []
 
     def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
         self.ticks.append(tick)
@@ -54,7 +55,7 @@ class TickLog(TickObserver):
         self.boundaries.append(("start", episode_idx, task))
 
     def on_episode_end(self, episode_idx: int, *, success: bool, keep: bool = True) -> None:
-        self.boundaries.append(("end", episode_idx, success))
+        self.boundaries.append(("end", episode_idx, success, keep))
 
     def close(self) -> None:
         return
@@ -94,11 +95,11 @@ def test_one_env_step_per_tick_and_episodes_derived_from_the_ticks() -> None:
         assert episode.seed == 7 + episode.episode_idx
     assert log.boundaries == [
         ("start", 0, "reach the target"),
-        ("end", 0, True),
+        ("end", 0, True, True),
         ("start", 1, "reach the target"),
-        ("end", 1, True),
+        ("end", 1, True, True),
         ("start", 2, "reach the target"),
-        ("end", 2, True),
+        ("end", 2, True, True),
     ]
     # The skill saw the observation of the step before (its world state carries privileged values).
     world = log.worlds[1]
@@ -159,7 +160,7 @@ def test_a_failing_skill_is_withheld_and_counted_and_the_run_stops_after_too_man
     assert result.stop_reason == StopReason.FAULTS
     steps = [t for t in log.ticks if t.step_idx is not None]
     assert [t.withheld_reason for t in steps] == [WithheldReason.SKILL_ERROR] * 3
-    # The episode under way is closed as a failure when the runner stops.
+    # The episode under way is closed as ended by the faults (not cut off by max_steps), and not kept.
     assert runner.episode_results == [
         EpisodeResult(
             episode_idx=0,
@@ -168,10 +169,41 @@ def test_a_failing_skill_is_withheld_and_counted_and_the_run_stops_after_too_man
             steps=3,
             sum_reward=runner.episode_results[0].sum_reward,
             max_reward=runner.episode_results[0].max_reward,
-            ended_by="max_steps",
+            ended_by="faults",
             timing=runner.episode_results[0].timing,
         )
     ]
+    assert log.boundaries[-1] == ("end", 0, False, False)
+    # What failed is the skill's own error, with where it happened.
+    assert runner.failure is not None
+    assert "RuntimeError: boom" in runner.failure
+    assert "in episode 0 (step 3)" in runner.failure
+
+
+def test_a_skill_failing_every_step_is_an_error_with_its_message_not_a_0_percent_run() -> None:
+    # The SO-101 expert needs privileged values the mock does not expose: every step fails.
+    with pytest.raises(SkillFailed, match="no privileged value 'grasp_pos'") as caught:
+        run_episodes(_scene(n_episodes=4, max_steps=60), "so101_pick_expert")
+    assert isinstance(caught.value, ROSRuntimeError)  # a run-time error (exit 1), not a configuration one
+    assert "so101_pick_expert" in str(caught.value)
+    episodes = caught.value.batch.episodes
+    assert [(e.episode_idx, e.success, e.ended_by) for e in episodes] == [(0, False, "faults")]
+    assert episodes[0].steps < 60
+
+
+def test_an_episode_cut_by_a_stop_request_ends_as_stopped_not_at_max_steps() -> None:
+    runner = build_sim_runner(_scene(n_episodes=2, max_steps=40), "zero")
+
+    class StopAtStep(TickLog):
+        def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
+            super().on_tick(tick, world)
+            if tick.step_idx == 4:
+                runner.request_stop(StopReason.SIGINT)
+
+    result = _run(runner, StopAtStep())
+    assert result.stop_reason == StopReason.SIGINT
+    assert [(e.steps, e.ended_by) for e in runner.episode_results] == [(5, "stopped")]
+    assert runner.failure is None
 
 
 def test_cameras_are_rendered_into_the_world_state_each_step() -> None:

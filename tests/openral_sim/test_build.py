@@ -1,0 +1,72 @@
+"""Building a sim evaluation: every name and parameter checked before an episode runs, errors naming their field."""
+
+from __future__ import annotations
+
+import pickle
+from typing import Any
+
+import pytest
+
+from openral_core import ROSConfigError, ROSDependencyMissing, SimEnvironment
+from openral_sim import build
+from openral_sim.build import EpisodeBatch, SkillFailed, SkillFields, build_sim_runner, check_evaluation
+
+
+def _scene(**update: Any) -> SimEnvironment:
+    values: dict[str, Any] = {
+        "name": "reach",
+        "env": "mock",
+        "task": "reach the target",
+        "max_steps": 10,
+        "n_episodes": 1,
+    }
+    values.update(update)
+    return SimEnvironment(**values)
+
+
+def test_a_suite_rows_skill_and_its_parameters_are_named_as_the_rows_fields() -> None:
+    fields = SkillFields.of_row(1)
+    with pytest.raises(ROSConfigError, match="did you mean 'random'") as unknown:
+        check_evaluation(_scene(), "randm", fields=fields)
+    assert unknown.value.field == "runs[1].skill"
+    with pytest.raises(ROSConfigError, match="sede") as bad_key:
+        check_evaluation(_scene(), "random", {"sede": 1}, fields=fields)
+    assert bad_key.value.field == "runs[1].skill_params.sede"
+    with pytest.raises(ROSConfigError, match="env: unknown simulation environment 'mokc'") as bad_env:
+        check_evaluation(_scene(env="mokc"), "random", fields=fields)
+    assert bad_env.value.field == "runs[1].scene"
+
+
+def test_sim_run_names_its_options() -> None:
+    with pytest.raises(ROSConfigError) as bad_key:
+        build_sim_runner(_scene(), "random", {"sede": 1})
+    assert bad_key.value.field == "--skill-params.sede"
+
+
+def test_the_environment_is_built_once_per_scene_and_a_good_row_passes() -> None:
+    spec = check_evaluation(_scene(), "mock_reach_expert")
+    assert spec.action_names == ("dx", "dy")
+    # Given the spec of the same scene, the next row's skill is checked against it without an env.
+    assert check_evaluation(_scene(env="no-such-env"), "zero", spec=spec) is spec
+
+
+def test_a_skill_failure_survives_the_trip_back_from_a_worker_process() -> None:
+    batch = EpisodeBatch(episodes=[], failure="skill 'x' failed")
+    error = pickle.loads(pickle.dumps(SkillFailed("skill 'x' failed", batch=batch)))
+    assert str(error) == "skill 'x' failed"
+    assert error.batch == batch
+
+
+def test_a_simulator_missing_here_is_left_to_the_cluster_but_the_skill_name_is_still_checked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def missing(scene: SimEnvironment) -> Any:
+        raise ROSDependencyMissing("mujoco", extra="twin", needed_for="the scene")
+
+    monkeypatch.setattr(build, "make_env", missing)
+    with pytest.raises(ROSDependencyMissing):
+        check_evaluation(_scene(), "zero")  # the episodes would run here: refused now
+    assert check_evaluation(_scene(), "zero", simulator_elsewhere=True) is None
+    with pytest.raises(ROSConfigError) as unknown:
+        check_evaluation(_scene(), "zeroo", fields=SkillFields.of_row(0), simulator_elsewhere=True)
+    assert unknown.value.field == "runs[0].skill"
