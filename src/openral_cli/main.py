@@ -34,6 +34,7 @@ from openral_core import (
     RobotEnvironment,
     ROSConfigError,
     ROSDeadlineMissed,
+    ROSRuntimeError,
     ROSStopRequested,
     RunResult,
     StopReason,
@@ -271,6 +272,8 @@ def _deploy(
                 click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
         try:
             with running(env, base_dir, signals=signals, recorder=recorder, observers=observers) as runner:
+                if recorder is not None:
+                    recorder.on_failure = runner.request_stop  # the dataset cannot be written: stop there
                 _log.info("running", deployment=env.name, rate_hz=env.rate_hz, skill=env.vla.id, robot=env.hal.robot_id)
                 if recording is not None:
                     runner.episode_start(recording.task)
@@ -286,6 +289,8 @@ def _deploy(
         finally:
             if recorder is not None and not quiet:
                 click.echo(recording_summary(recorder), err=True)
+    if recorder is not None and recorder.failure is not None:
+        raise ROSRuntimeError(str(recorder.failure))
     return result
 
 

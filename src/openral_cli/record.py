@@ -4,7 +4,8 @@ Episodes of ``--episode-time-s`` are recorded one after another, with ``--reset-
 them during which the robot holds and nothing is recorded. Keys (``n``/→ next, ``r``/← re-record,
 ``q``/Esc stop) work in any terminal. A re-recorded take is discarded without a trace. On SIGINT
 or SIGTERM the episode under way is kept or discarded (``--on-stop``), the dataset finalized, and
-the command exits 130/143.
+the command exits 130/143. When the dataset cannot be written (a full or read-only disk), recording
+stops at once, the committed episodes stay intact, and the command exits 1 with one line.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from openral_cli.recording import MCAP_OPTION, VCODEC_OPTION, build_recorder, bu
 from openral_cli.session import STOP_EXIT_CODES, command_span, running
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
-from openral_core import RobotEnvironment, ROSStopRequested, StopReason
+from openral_core import RobotEnvironment, ROSRuntimeError, ROSStopRequested, StopReason
 from openral_runner.hardware import HardwareRunner
 
 _log = structlog.get_logger("openral")
@@ -124,8 +125,10 @@ def record(
                     KeyReader(keys),
                     running(env, config_path.parent, signals=signals, recorder=recorder, observers=observers) as runner,
                 ):
+                    recorder.on_failure = runner.request_stop  # a write failure ends the episode under way
                     _record_episodes(
                         runner,
+                        recorder,
                         keys,
                         totals,
                         episodes=episodes,
@@ -138,6 +141,8 @@ def record(
             except ROSStopRequested as exc:
                 totals.stop = StopReason(exc.reason)
         _print_summary(totals, recorder)
+        if recorder.failure is not None:
+            raise ROSRuntimeError(str(recorder.failure))
         code = EXIT_OK if totals.stop is None else STOP_EXIT_CODES.get(totals.stop, EXIT_OK)
         if recorder.errors:
             code = EXIT_RUNTIME
@@ -146,6 +151,7 @@ def record(
 
 def _record_episodes(
     runner: HardwareRunner,
+    recorder: Any,
     keys: _Keys,
     totals: _Totals,
     *,
@@ -157,7 +163,7 @@ def _record_episodes(
     title: str,
 ) -> None:
     take = 0
-    while totals.committed < episodes:
+    while totals.committed < episodes and recorder.failure is None:
         task = tasks[totals.committed % len(tasks)]
         keys.take()
         runner.episode_start(task)
@@ -169,6 +175,10 @@ def _record_episodes(
         finally:
             keys.recording = None
         command = keys.take()
+        if recorder.failure is not None:  # it stopped the run: nothing more can be written
+            runner.episode_end(success=False, keep=False)
+            _count(totals, result, kept=False)
+            return
         signalled = result.stop_reason not in (StopReason.DURATION, StopReason.STOP_REQUESTED, StopReason.SKILL_DONE)
         if signalled:
             failed = result.stop_reason in _FAILED_STOPS
@@ -191,6 +201,10 @@ def _record_episodes(
                 return
         if totals.committed < episodes and _reset(runner, keys, reset_time_s) is KeyCommand.STOP:
             return
+        recorder.wait_for_commit()  # committed during the reset; a write failure stops before the next episode
+        if recorder.failure is not None:
+            _uncount_failed(totals, recorder)
+            return
 
 
 def _reset(runner: HardwareRunner, keys: _Keys, reset_time_s: float) -> KeyCommand | None:
@@ -208,6 +222,13 @@ def _reset(runner: HardwareRunner, keys: _Keys, reset_time_s: float) -> KeyComma
             if command in (KeyCommand.NEXT, KeyCommand.STOP):
                 return command
     return None
+
+
+def _uncount_failed(totals: _Totals, recorder: Any) -> None:
+    """The episode whose commit failed was counted as kept: count it as discarded."""
+    committed = sum(1 for e in recorder.episodes if e.committed)
+    totals.discarded += totals.committed - committed
+    totals.committed = committed
 
 
 def _count(totals: _Totals, result: Any, *, kept: bool) -> None:

@@ -114,13 +114,16 @@ def with_thumbnails(env: RobotEnvironment, rate_hz: float = 10.0) -> RobotEnviro
 
 
 def recording_summary(recorder: Any) -> str:
-    """One line: episodes committed, frames, repeated frames and dropped ticks."""
+    """One line: episodes committed, frames, repeated frames and dropped ticks, and why recording stopped early."""
     committed = [e for e in recorder.episodes if e.committed]
     frames = sum(e.frames for e in committed)
-    return (
+    line = (
         f"dataset {recorder.sink.root}: {len(committed)} episode(s) committed, {frames} frames, "
         f"{recorder.repeated_frames} repeated frame(s), {recorder.dropped_ticks} dropped tick(s)"
     )
+    if recorder.failure is not None:
+        line += f"; recording stopped early: {recorder.failure}"
+    return line
 
 
 @click.group()
@@ -135,6 +138,8 @@ def check(root: Path, no_video: bool) -> None:
     """Validate a LeRobotDataset v3.0: layout, counters, index, frame grid, videos, orphans."""
     checker = importlib.import_module("openral_dataset.check")
     report = checker.check_dataset(root, decode_videos=not no_video)
+    for note in report.notes:
+        click.echo(f"note: {note}", err=True)
     for problem in report.problems:
         click.echo(f"problem: {problem}", err=True)
     if report.problems:

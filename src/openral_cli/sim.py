@@ -27,7 +27,7 @@ from openral_cli.options import json_object
 from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
 from openral_cli.session import command_span
 from openral_cli.signals import StopSignals
-from openral_core import BenchmarkRun, BenchmarkSuite, EpisodeResult, SimEnvironment
+from openral_core import BenchmarkRun, BenchmarkSuite, EpisodeResult, ROSRuntimeError, SimEnvironment
 from openral_core.config import load_model_yaml
 from openral_core.config_files import resolve_user_path
 
@@ -144,8 +144,13 @@ def sim_run(
                 params,
                 observers=observers,
                 recorder=make_recorder if dataset_out is not None else None,
-                on_runner=lambda runner: signals.on_stop(runner.request_stop),
+                on_runner=lambda runner: _stop_on(runner, signals, recorders),
             )
+        failed = next((r.failure for r in recorders if r.failure is not None), None)
+        if failed is not None:  # the episodes after the write failure were not recorded: no result to report
+            for recorder in recorders:
+                click.echo(recording_summary(recorder), err=True)
+            raise ROSRuntimeError(str(failed))
         report = {
             "scene": scene.name,
             "skill": skill_id,
@@ -165,6 +170,13 @@ def sim_run(
         if signals.received is not None:
             code = signals.exit_code or EXIT_RUNTIME
     raise SystemExit(code)
+
+
+def _stop_on(runner: Any, signals: StopSignals, recorders: list[Any]) -> None:
+    """Stop signals and a recorder that can no longer write both end the run."""
+    signals.on_stop(runner.request_stop)
+    for recorder in recorders:
+        recorder.on_failure = runner.request_stop
 
 
 def _scene(scene: SimEnvironment, n_episodes: int | None, seed: int | None) -> SimEnvironment:

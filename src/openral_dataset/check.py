@@ -1,10 +1,12 @@
 """``check_dataset``: is this folder a LeRobotDataset v3.0 that LeRobot loads, and do its counters tell the truth?
 
-Uses only pyarrow and PyAV. It checks the layout (every file ``info.json`` promises, nothing it
-does not: a staging area or a later episode's file is an orphan that would leak rows into a
-load), the counters, index contiguity, the frame grid (``timestamp == frame_index / fps``), each
-episode's metadata against its rows and tasks, and every video: one frame per row, frame ``i`` at
-``i / fps``.
+Uses only pyarrow and PyAV. ``meta/`` and the file layout are checked by
+:func:`openral_dataset.meta.meta_problems` (the rules a resumed recording enforces too): every file
+``info.json`` promises and nothing it does not (a later episode's file is an orphan that would
+leak rows into a load), the counters, the episode rows, tasks and statistics. Then each episode's
+data: index contiguity, the frame grid (``timestamp == frame_index / fps``), its rows against its
+episode row, and every video: one frame per row, frame ``i`` at ``i / fps``. A staging area left
+by an interrupted recording is a note, not a problem: LeRobot never reads it.
 """
 
 from __future__ import annotations
@@ -17,8 +19,8 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from openral_core import ROSDependencyMissing
-from openral_dataset import layout, schema
-from openral_dataset.writer import read_tasks
+from openral_core.errors import one_line
+from openral_dataset import layout, meta, schema
 
 try:
     import av
@@ -31,13 +33,14 @@ TIME_TOLERANCE_S = 1e-4
 
 @dataclass
 class CheckReport:
-    """What was checked and every problem found (empty: the dataset is sound)."""
+    """What was checked, every problem found (empty: the dataset is sound) and notes that are no problem."""
 
     root: Path
     episodes: int = 0
     frames: int = 0
     videos: int = 0
     problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -48,95 +51,60 @@ def check_dataset(root: Path, *, decode_videos: bool = True) -> CheckReport:
     """Check the dataset at ``root``; every problem is named with the file it is in."""
     report = CheckReport(root)
     problems = report.problems
+    if (root / layout.STAGING_DIR).exists():
+        report.notes.append(
+            f"{layout.STAGING_DIR}/: what an interrupted recording left outside the dataset "
+            "(LeRobot never reads it; the next recording into this folder removes it)"
+        )
     try:
-        info = layout.read_info(root)
-    except ValueError as exc:
-        problems.append(f"{layout.INFO_PATH}: not valid JSON ({exc})")
+        info = meta.read_meta(root)
+    except meta.MetaError as exc:
+        problems.append(str(exc))
         return report
     if info is None:
         problems.append(f"{layout.INFO_PATH}: missing (no episode was ever committed)")
         return report
-    missing = [k for k in _INFO_KEYS if k not in info]
-    if missing:
-        problems.append(f"{layout.INFO_PATH}: missing keys {missing}")
-        return report
-    if info["codebase_version"] != layout.CODEBASE_VERSION:
-        problems.append(f"{layout.INFO_PATH}: codebase_version {info['codebase_version']!r}, expected 'v3.0'")
-    fps = info["fps"]
-    if not isinstance(fps, int) or fps < 1:
-        problems.append(f"{layout.INFO_PATH}: fps must be a positive integer, got {fps!r}")
-        return report
-    episodes = int(info["total_episodes"])
-    report.episodes = episodes
-    video_keys = [k for k, v in info["features"].items() if v.get("dtype") == "video"]
-
-    _check_files(root, episodes, video_keys, problems)
-    if (root / layout.STAGING_DIR).exists():
-        problems.append(f"{layout.STAGING_DIR}/: an uncommitted episode was left (opening the dataset removes it)")
+    report.episodes = info.total_episodes
+    problems.extend(meta.layout_problems(root, info))
     if problems:
         return report
-
-    tasks = read_tasks(root)
-    if len(tasks) != info["total_tasks"]:
-        problems.append(f"{layout.TASKS_PATH}: {len(tasks)} task(s), info.json says {info['total_tasks']}")
-    task_of = {index: task for task, index in tasks.items()}
+    rows = meta.episode_rows(root, info, problems)
+    problems.extend(meta.table_problems(root, info, rows))
+    try:
+        task_of = {index: task for task, index in meta.read_tasks(root).items()}
+    except meta.MetaError:
+        return report  # reported above
+    if len(rows) < info.total_episodes:
+        return report  # an episode row cannot be read: the data cannot be checked against it
     next_index = 0
-    meta_schema: Any = None
-    for episode in range(episodes):
-        lengths = _check_episode(
-            root, episode, fps=fps, first_index=next_index, task_of=task_of, video_keys=video_keys, problems=problems
+    for episode in range(info.total_episodes):
+        length = _check_episode(
+            root,
+            episode,
+            rows[episode],
+            fps=info.fps,
+            first_index=next_index,
+            task_of=task_of,
+            video_keys=info.video_keys,
+            problems=problems,
         )
-        if lengths is None:
+        if length is None:
             return report
-        meta_schema = _check_same_schema(root, episode, meta_schema, problems)
-        next_index += lengths
+        next_index += length
         if decode_videos:
-            for key in video_keys:
-                _check_video(layout.video_file(root, key, episode), lengths, fps, problems)
+            for key in info.video_keys:
+                _check_video(layout.video_file(root, key, episode), length, info.fps, problems)
                 report.videos += 1
     report.frames = next_index
-    if next_index != info["total_frames"]:
-        problems.append(f"{layout.INFO_PATH}: total_frames {info['total_frames']}, the data holds {next_index} rows")
-    if info["splits"] != {"train": f"0:{episodes}"}:
-        problems.append(f"{layout.INFO_PATH}: splits {info['splits']}, expected {{'train': '0:{episodes}'}}")
-    if episodes and not (root / layout.STATS_PATH).exists():
-        problems.append(f"{layout.STATS_PATH}: missing (policies normalise with it)")
+    if next_index != info.total_frames:
+        problems.append(f"{layout.INFO_PATH}: total_frames {info.total_frames}, the data holds {next_index} rows")
     return report
-
-
-_INFO_KEYS = (
-    "codebase_version",
-    "robot_type",
-    "total_episodes",
-    "total_frames",
-    "total_tasks",
-    "chunks_size",
-    "data_files_size_in_mb",
-    "video_files_size_in_mb",
-    "fps",
-    "splits",
-    "data_path",
-    "video_path",
-    "features",
-)
-
-
-def _check_files(root: Path, episodes: int, video_keys: list[str], problems: list[str]) -> None:
-    expected = set()
-    for episode in range(episodes):
-        expected.add(layout.data_file(root, episode))
-        expected.add(layout.episodes_file(root, episode))
-        expected.update(layout.video_file(root, key, episode) for key in video_keys)
-    present = set(layout.dataset_files(root))
-    for path in sorted(expected - present):
-        problems.append(f"{path.relative_to(root)}: missing")
-    for path in sorted(present - expected):
-        problems.append(f"{path.relative_to(root)}: orphan (not part of a committed episode; LeRobot would load it)")
 
 
 def _check_episode(
     root: Path,
     episode: int,
+    row: dict[str, Any],
     *,
     fps: int,
     first_index: int,
@@ -144,15 +112,48 @@ def _check_episode(
     video_keys: list[str],
     problems: list[str],
 ) -> int | None:
-    data_path = layout.data_file(root, episode)
-    meta_path = layout.episodes_file(root, episode)
+    """Episode ``episode``'s data against its episode ``row``; its length, or ``None`` if it cannot be read."""
+    name = layout.data_file(root, episode).relative_to(root)
     try:
-        data = pq.read_table(data_path)
-        meta = pq.read_table(meta_path).to_pylist()
+        data = pq.read_table(root / name)
     except Exception as exc:  # a parquet without a footer, or not parquet at all
-        problems.append(f"episode {episode}: unreadable ({exc})")
+        problems.append(f"{name}: unreadable ({one_line(str(exc))})")
         return None
-    name = data_path.relative_to(root)
+    absent = [c for c in schema.DEFAULT_COLUMNS if c not in data.column_names]
+    if absent:
+        problems.append(f"{name}: columns {absent} are missing")
+        return None
+    try:
+        return _check_rows(
+            root,
+            episode,
+            data,
+            row,
+            fps=fps,
+            first_index=first_index,
+            task_of=task_of,
+            video_keys=video_keys,
+            problems=problems,
+        )
+    except (TypeError, ValueError) as exc:  # a column of the wrong type
+        problems.append(f"{name}: unreadable columns ({one_line(str(exc))})")
+        return None
+
+
+def _check_rows(
+    root: Path,
+    episode: int,
+    data: Any,
+    row: dict[str, Any],
+    *,
+    fps: int,
+    first_index: int,
+    task_of: dict[int, str],
+    video_keys: list[str],
+    problems: list[str],
+) -> int:
+    name = layout.data_file(root, episode).relative_to(root)
+    meta_name = layout.episodes_file(root, episode).relative_to(root)
     n = int(data.num_rows)
     nulls = {c: data.column(c).null_count for c in data.column_names if data.column(c).null_count}
     if nulls:
@@ -167,10 +168,6 @@ def _check_episode(
     grid = np.arange(n, dtype=np.float64) / fps
     if not np.allclose(columns["timestamp"].astype(np.float64), grid, atol=TIME_TOLERANCE_S, rtol=0):
         problems.append(f"{name}: timestamp is not frame_index / fps")
-    if len(meta) != 1:
-        problems.append(f"{meta_path.relative_to(root)}: {len(meta)} rows, expected 1")
-        return n
-    row = meta[0]
     expect = {
         "episode_index": episode,
         "length": n,
@@ -179,7 +176,7 @@ def _check_episode(
     }
     for key, value in expect.items():
         if row.get(key) != value:
-            problems.append(f"{meta_path.relative_to(root)}: {key} {row.get(key)}, expected {value}")
+            problems.append(f"{meta_name}: {key} {row.get(key)}, expected {value}")
     tasks = row.get("tasks") or []
     task_indices = set(columns["task_index"].tolist())
     if len(task_indices) != 1 or task_of.get(task_indices.pop()) not in tasks:
@@ -187,17 +184,8 @@ def _check_episode(
     for key in video_keys:
         end = row.get(f"videos/{key}/to_timestamp")
         if end is None or abs(end - n / fps) > TIME_TOLERANCE_S:
-            problems.append(f"{meta_path.relative_to(root)}: videos/{key}/to_timestamp {end}, expected {n / fps}")
+            problems.append(f"{meta_name}: videos/{key}/to_timestamp {end}, expected {n / fps}")
     return n
-
-
-def _check_same_schema(root: Path, episode: int, first: Any, problems: list[str]) -> Any:
-    """Every episode's metadata has episode 0's schema: LeRobot concatenates them into one table."""
-    path = layout.episodes_file(root, episode)
-    found = pq.read_schema(path).remove_metadata()
-    if first is not None and not found.equals(first):
-        problems.append(f"{path.relative_to(root)}: its schema differs from episode 0's (LeRobot concatenates them)")
-    return first if first is not None else found
 
 
 def _check_video(path: Path, rows: int, fps: int, problems: list[str]) -> None:
@@ -210,7 +198,7 @@ def _check_video(path: Path, rows: int, fps: int, problems: list[str]) -> None:
                 return
             times = [float(frame.pts * base) for frame in container.decode(stream) if frame.pts is not None]
     except Exception as exc:
-        problems.append(f"{path.name}: cannot be decoded ({exc})")
+        problems.append(f"{path.as_posix()}: cannot be decoded ({one_line(str(exc))})")
         return
     where = path.as_posix()
     if len(times) != rows:

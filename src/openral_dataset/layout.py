@@ -1,18 +1,20 @@
-"""Where each file of a LeRobotDataset v3.0 lives, and the rule that keeps only committed episodes.
+"""Where each file of a LeRobotDataset v3.0 lives, and the few calls through which the recorder writes them.
 
 One file per episode: episode ``e`` is ``chunk-{e // 1000:03d}/file-{e % 1000:03d}`` under ``data/``,
 ``meta/episodes/`` and ``videos/<key>/``. ``meta/info.json`` is the commit record: an episode
-exists once ``total_episodes`` counts it, and any file of a later episode is a leftover of an
-interrupted commit, removed by :func:`remove_uncommitted`.
+exists once ``total_episodes`` counts it. The recorder writes its tables and metadata through
+:func:`write_file` (videos come from the encoder processes) and puts every file in place through
+:func:`move_synced`, both synced.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import re
 from pathlib import Path
 from typing import Any, Final
+
+from openral_core import ROSConfigError
 
 CODEBASE_VERSION: Final = "v3.0"
 CHUNKS_SIZE: Final = 1000
@@ -26,8 +28,22 @@ OUTCOMES_PATH: Final = "meta/openral_episodes.jsonl"
 """What LeRobot's episode rows have no column for: each episode's success and repeated frames, one JSON line each."""
 STAGING_DIR: Final = ".openral-staging"
 """Where an episode is written before it is committed: outside ``data/``, ``meta/`` and ``videos/``."""
+_PROBE: Final = "write-probe"
 
-_FILE = re.compile(r"chunk-(\d{3,})/file-(\d{3,})\.(parquet|mp4)$")
+
+def unsafe_key(key: object) -> str | None:
+    """Why ``key`` cannot name a folder inside a dataset (``None``: it can).
+
+    A feature key becomes one path component (``videos/<key>/…``, a replayed frame's file name):
+    a separator, ``.``/``..`` or a NUL would let a dataset's metadata write or read elsewhere.
+    """
+    if not isinstance(key, str) or not key:
+        return "it is not a non-empty string"
+    if "/" in key or "\\" in key or "\0" in key:
+        return "it holds a path separator (or NUL)"
+    if key in (".", ".."):
+        return f"'{key}' names a folder outside the feature's own"
+    return None
 
 
 def chunk_file(episode_idx: int) -> dict[str, int]:
@@ -44,67 +60,87 @@ def episodes_file(root: Path, episode_idx: int) -> Path:
 
 
 def video_file(root: Path, video_key: str, episode_idx: int) -> Path:
+    """Episode ``episode_idx``'s video of feature ``video_key``.
+
+    Raises:
+        ROSConfigError: ``video_key`` is not a single, safe folder name.
+    """
+    why = unsafe_key(video_key)
+    if why is not None:
+        raise ROSConfigError(f"feature {video_key!r} cannot name a video folder: {why}", field="features")
     return root / VIDEO_PATH.format(video_key=video_key, **chunk_file(episode_idx))
 
 
-def episode_of(path: Path) -> int | None:
-    """The episode a dataset file belongs to, from its chunk and file index (``None`` if not such a file)."""
-    match = _FILE.search(path.as_posix())
-    if match is None:
-        return None
-    return int(match.group(1)) * CHUNKS_SIZE + int(match.group(2))
-
-
 def read_info(root: Path) -> dict[str, Any] | None:
-    """``meta/info.json``, or ``None`` when the dataset has none yet."""
+    """``meta/info.json`` parsed but not checked (``None`` when there is none); ``meta.read_meta`` checks it.
+
+    Raises:
+        ValueError: It is not a JSON object.
+    """
     path = root / INFO_PATH
     if not path.exists():
         return None
-    info: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
+    info = json.loads(path.read_bytes())
+    if not isinstance(info, dict):
+        raise ValueError(f"{INFO_PATH} holds a JSON {type(info).__name__}, not an object")
     return info
 
 
 def dataset_files(root: Path) -> list[Path]:
-    """Every episode file under ``data/``, ``meta/episodes/`` and ``videos/``."""
+    """Every file under ``data/``, ``meta/episodes/`` and ``videos/``."""
     found: list[Path] = []
     for top in ("data", "meta/episodes", "videos"):
         base = root / top
         if base.is_dir():
-            found.extend(p for p in base.rglob("*") if p.is_file())
+            found.extend(p for p in base.rglob("*") if p.is_file() or p.is_symlink())
     return sorted(found)
 
 
-def remove_uncommitted(root: Path) -> list[Path]:
-    """Delete what an interrupted recording left: the staging area and files of uncounted episodes.
+def foreign_files(root: Path) -> list[Path]:
+    """Every file under ``data/``, ``meta/`` and ``videos/``: what a folder becoming a new dataset must not hold."""
+    found: list[Path] = []
+    for top in ("data", "meta", "videos"):
+        base = root / top
+        if base.is_symlink() or base.is_file():
+            found.append(base)
+        elif base.is_dir():
+            found.extend(p for p in base.rglob("*") if not p.is_dir() or p.is_symlink())
+    return sorted(found)
 
-    Returns:
-        The files removed (the staging area is not listed).
+
+def check_writable(root: Path) -> None:
+    """Create the dataset and staging folders and write, sync and remove a small file there.
+
+    Raises:
+        OSError: The folder cannot be written (read-only, full, not a folder, no permission).
     """
-    info = read_info(root)
-    committed = 0 if info is None else int(info["total_episodes"])
-    removed = []
-    for path in dataset_files(root):
-        episode = episode_of(path)
-        if episode is None or episode >= committed:
-            path.unlink()
-            removed.append(path)
     staging = root / STAGING_DIR
-    if staging.exists():
-        for path in sorted(staging.rglob("*"), reverse=True):
-            path.rmdir() if path.is_dir() else path.unlink()
-        staging.rmdir()
-    return removed
+    staging.mkdir(parents=True, exist_ok=True)
+    probe = staging / _PROBE
+    probe.unlink(missing_ok=True)
+    write_file(probe, b"openral")
+    probe.unlink()
+
+
+def write_file(path: Path, data: bytes) -> None:
+    """Create ``path`` (never replacing a file) holding ``data``, synced to disk."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "xb") as out:
+        out.write(data)
+        out.flush()
+        os.fsync(out.fileno())
 
 
 def write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a synced temporary file and a rename: all or nothing."""
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as out:
-        out.write(data)
-        out.flush()
-        os.fsync(out.fileno())
-    os.replace(tmp, path)
+    tmp.unlink(missing_ok=True)
+    try:
+        write_file(tmp, data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     sync_dir(path.parent)
 
 
@@ -113,14 +149,6 @@ def move_synced(src: Path, dst: Path) -> None:
     dst.parent.mkdir(parents=True, exist_ok=True)
     os.replace(src, dst)
     sync_dir(dst.parent)
-
-
-def sync_file(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def sync_dir(path: Path) -> None:

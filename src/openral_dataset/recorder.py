@@ -9,17 +9,23 @@ the robot was commanded to after safety (the action sent, or, when the tick's ac
 withheld, the target it kept holding); ``openral.*`` columns keep what really happened (tick
 stamp, lateness, requested action, why an action was withheld, each camera's capture stamp,
 sequence number and age, the tick's trace and span id).
+
+The first failure to write (a full or read-only disk, an encoder that died) stops the recording:
+the episode under way is discarded, the committed ones stay as they are, nothing more is
+recorded, :attr:`RolloutRecorder.failure` says why and ``on_failure`` is called (the CLI stops the
+run with it). It is logged on one line; the traceback only at debug level.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from typing import Any, Self
 
 import structlog
 
-from openral_core import TickResult, WorldState
+from openral_core import ROSRuntimeError, TickResult, WorldState
 from openral_dataset import schema
 from openral_dataset.writer import EpisodeSummary, LeRobotDatasetSink
 from openral_observability import metrics, semconv
@@ -47,8 +53,16 @@ class RolloutRecorder(QueuedObserver):
         self.episodes: list[EpisodeSummary] = []
         self.dropped_ticks = 0
         """Ticks inside an episode that never reached the dataset (the queue overflowed)."""
+        self.failure: ROSRuntimeError | None = None
+        """Why recording stopped early (``None`` while it works); the committed episodes are intact."""
+        self.on_failure: Callable[[], None] | None = None
+        """Called once, on the worker thread, when recording stops early (e.g. a runner's ``request_stop``)."""
         self._held: list[float] | None = None
         self._state: list[float] | None = None
+        self._announce: tuple[int, str] | None = None
+        self._ends = threading.Condition()
+        self._ends_queued = 0
+        self._ends_done = 0
         super().__init__(name="openral-recorder", max_queue=max_queue)
 
     # -- the seed's names ------------------------------------------------------------------
@@ -63,6 +77,22 @@ class RolloutRecorder(QueuedObserver):
     def __exit__(self, *_exc: object) -> None:
         self.finalize()
 
+    def on_episode_end(self, episode_idx: int, *, success: bool, keep: bool = True) -> None:
+        with self._ends:
+            self._ends_queued += 1
+        super().on_episode_end(episode_idx, success=success, keep=keep)
+
+    def wait_for_commit(self, timeout_s: float = 300.0) -> bool:
+        """Block until every episode end queued so far is committed or discarded, or recording stopped.
+
+        Returns:
+            ``False`` if that did not happen within ``timeout_s``.
+        """
+        with self._ends:
+            return self._ends.wait_for(
+                lambda: self._ends_done >= self._ends_queued or self.failure is not None, timeout_s
+            )
+
     @property
     def repeated_frames(self) -> int:
         """Frames repeated in videos because an encoder fell behind, over every episode so far."""
@@ -76,13 +106,28 @@ class RolloutRecorder(QueuedObserver):
             metrics.add(semconv.METRIC_RECORDING_DROPPED_TICKS)
 
     def handle_episode_start(self, episode_idx: int, task: str) -> None:
+        if self.failure is not None:
+            return
         self._held = None
-        dataset_idx = self.sink.begin_episode(task)
-        _log.info("recording episode", episode=dataset_idx, task=task)
+        try:
+            dataset_idx = self.sink.begin_episode(task)
+        except Exception as exc:
+            self._fail(exc)
+            return
+        self._announce = (dataset_idx, task)  # logged with its first row: the episode is being recorded then
 
     def handle_episode_end(self, episode_idx: int, *, success: bool, keep: bool) -> None:
-        if not self.sink.episode_open:
-            return
+        try:
+            if self.sink.episode_open:
+                self._end_episode(success=success, keep=keep and self.failure is None)
+        except Exception as exc:
+            self._fail(exc)
+        finally:
+            with self._ends:
+                self._ends_done += 1
+                self._ends.notify_all()
+
+    def _end_episode(self, *, success: bool, keep: bool) -> None:
         summary = self.sink.end_episode(keep=keep, success=success)
         self.episodes.append(summary)
         if summary.committed:
@@ -95,8 +140,18 @@ class RolloutRecorder(QueuedObserver):
         )
 
     def handle_tick(self, tick: TickResult, world: WorldState | None) -> None:
-        if not self.sink.episode_open or tick.step_idx is None:
-            return  # between episodes (a simulator's reset tick included)
+        if self.failure is not None or not self.sink.episode_open or tick.step_idx is None:
+            return  # stopped, or between episodes (a simulator's reset tick included)
+        try:
+            self._record_tick(tick, world)
+        except Exception as exc:
+            self._fail(exc)
+            try:
+                self.sink.end_episode(keep=False)  # the episode under way is lost; the committed ones stay
+            except Exception as discard_exc:
+                _log.debug("discarding the episode under way failed", exc_info=discard_exc)
+
+    def _record_tick(self, tick: TickResult, world: WorldState | None) -> None:
         state = self._measured_state(world)
         if state is None:
             return  # nothing measured yet: no row can say where the robot was
@@ -126,6 +181,9 @@ class RolloutRecorder(QueuedObserver):
                 row[schema.camera_column(cam.sensor_id, "seq")] = frame.seq
                 row[schema.camera_column(cam.sensor_id, "age_ms")] = (world.stamp_ns - frame.stamp_ns) / 1e6
         self.sink.add_row(row, frames)
+        if self._announce is not None:
+            _log.info("recording episode", episode=self._announce[0], task=self._announce[1])
+            self._announce = None
         metrics.add(semconv.METRIC_RECORDING_FRAMES)
         for cam in self.sink.cameras:
             if row.get(schema.camera_column(cam.sensor_id, "repeated")):
@@ -148,6 +206,21 @@ class RolloutRecorder(QueuedObserver):
             # The run ended inside an episode (a stop, a fault): what was recorded is kept.
             self.handle_episode_end(-1, success=False, keep=True)
         self.sink.close()
+
+    def _fail(self, exc: Exception) -> None:
+        """Stop recording at the first failure: one line in the log, the traceback at debug level."""
+        self.errors += 1
+        if self.failure is not None:
+            return
+        root = str(self.sink.root)
+        text = str(exc) if root in str(exc) else f"recording into {root} failed: {exc}"
+        self.failure = ROSRuntimeError(text)
+        _log.error("recording stopped", dataset=root, error=text)
+        _log.debug("recording stopped", exc_info=exc)
+        with self._ends:
+            self._ends.notify_all()
+        if self.on_failure is not None:
+            self.on_failure()
 
     def _hold_default(self, state: list[float]) -> list[float]:
         """The target before any action was sent: the measured joints, or zeros for a non-joint action space."""

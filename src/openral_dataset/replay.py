@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from openral_core import ROSConfigError, ROSDependencyMissing
-from openral_dataset import layout, schema
+from openral_dataset import layout, meta, schema
 
 try:
     import av
@@ -57,10 +57,15 @@ def lookup_frame(root: Path, episode_idx: int, frame_idx: int) -> ReplayFrame:
     Raises:
         ROSConfigError: No such dataset, episode or frame.
     """
-    info = layout.read_info(root)
+    try:
+        info = meta.read_meta(root)
+    except meta.MetaError as exc:
+        raise ROSConfigError(
+            f"{root}: {exc}", field="--frame", hint=f"openral dataset check {root} lists every problem"
+        ) from None
     if info is None:
         raise ROSConfigError(f"{root} is not a dataset (no meta/info.json)", field="--frame")
-    episodes = int(info["total_episodes"])
+    episodes = info.total_episodes
     if not 0 <= episode_idx < episodes:
         raise ROSConfigError(
             f"episode {episode_idx} does not exist; the dataset has 0..{episodes - 1}", field="--frame"
@@ -71,12 +76,10 @@ def lookup_frame(root: Path, episode_idx: int, frame_idx: int) -> ReplayFrame:
             f"frame {frame_idx} does not exist; episode {episode_idx} has 0..{table.num_rows - 1}", field="--frame"
         )
     row = {name: values[0] for name, values in table.slice(frame_idx, 1).to_pydict().items()}
-    fps = int(info["fps"])
     images = {}
-    for key, spec in info["features"].items():
-        if spec.get("dtype") == "video":
-            camera = key.removeprefix(schema.IMAGE_PREFIX)
-            images[camera] = _decode_at(layout.video_file(root, key, episode_idx), frame_idx / fps)
+    for key in info.video_keys:  # checked: each is one safe folder name, so the camera is a safe file name too
+        camera = key.removeprefix(schema.IMAGE_PREFIX)
+        images[camera] = _decode_at(layout.video_file(root, key, episode_idx), frame_idx / info.fps)
     return ReplayFrame(episode_idx, frame_idx, row, images)
 
 

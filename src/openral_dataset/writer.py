@@ -2,17 +2,22 @@
 
 An episode is built in a staging folder outside ``data/``, ``meta/`` and ``videos/``: its rows in
 memory, one streaming video encoder per camera (frames are encoded while recording). Committing
-writes and syncs its data and episode parquet files, then renames videos, data and episode
-metadata into place, then rewrites ``meta/tasks.parquet`` and ``meta/stats.json``, and
-``meta/info.json`` last: until that rename the episode does not exist, and anything of it left by
-a crash is removed the next time the dataset is opened (:func:`~openral_dataset.layout.remove_uncommitted`).
+writes and syncs its data and episode parquet files and the dataset's new ``tasks.parquet``,
+``stats.json``, outcome lines and ``info.json`` there, then moves them into place, ``info.json``
+last (:mod:`openral_dataset.commit`): until that rename the episode does not exist. A failed
+commit is put back at once; one a crash interrupted, the next time the dataset is opened.
+
+Opening refuses what it cannot trust before it touches a file: a folder holding files that are
+not an openral dataset, metadata that ``openral dataset check`` would flag
+(:mod:`openral_dataset.meta`), a folder it cannot write.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,7 +26,8 @@ import numpy as np
 import structlog
 
 from openral_core import FrameEncoding, ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SensorFrame
-from openral_dataset import layout, schema, stats
+from openral_dataset import commit, layout, meta, schema, stats
+from openral_dataset.meta import read_tasks
 from openral_dataset.video import EncoderProcess, OverflowPolicy, StreamingVideoEncoder
 
 try:
@@ -80,8 +86,9 @@ class LeRobotDatasetSink:
             non-empty dataset is refused.
 
     Raises:
-        ROSConfigError: A bad rate or codec, an existing dataset without ``resume``, or one whose
-            features differ from this recording's.
+        ROSConfigError: A bad rate, codec or camera name; an existing dataset without ``resume``,
+            or one whose metadata is damaged or whose features differ from this recording's; a
+            folder holding other files; a folder that cannot be written.
     """
 
     def __init__(
@@ -107,6 +114,12 @@ class LeRobotDatasetSink:
         self.action_names = self.joint_names if action_names is None else list(action_names)
         self.environment_state_names = list(environment_state_names)
         self.cameras = list(cameras)
+        for cam in self.cameras:
+            why = layout.unsafe_key(schema.video_key(cam.sensor_id))
+            if why is not None:
+                raise ROSConfigError(
+                    f"camera {cam.sensor_id!r} cannot name a video folder: {why}", field="sensors[].sensor_id"
+                )
         self.vcodec = vcodec
         self.overflow = OverflowPolicy(overflow)
         self.features = self._features()
@@ -135,50 +148,92 @@ class LeRobotDatasetSink:
     # -- opening ---------------------------------------------------------------------------
 
     def _open(self, resume: bool) -> None:
-        info = layout.read_info(self.root)
-        if info is None:
-            if layout.dataset_files(self.root) and not resume:
-                raise ROSConfigError(
-                    f"{self.root} holds dataset files but no meta/info.json (an interrupted first episode?)",
-                    field="--dataset-out",
-                    hint="choose an empty folder, or pass --resume to clean it up and record into it",
-                )
-            self._report_cleanup(layout.remove_uncommitted(self.root))
-            self.root.mkdir(parents=True, exist_ok=True)
+        if self.root.exists() and not self.root.is_dir():
+            raise ROSConfigError(f"{self.root} is a file, not a folder", field="--dataset-out")
+        try:
+            found = meta.read_meta(self.root)
+        except meta.MetaError as exc:
+            raise ROSConfigError(
+                f"cannot open {self.root}: {exc}",
+                field="--dataset-out",
+                hint=f"repair or restore that file, or record into another folder; "
+                f"openral dataset check {self.root} lists every problem",
+            ) from None
+        if found is None:
+            self._open_new()
             return
         if not resume:
             raise ROSConfigError(
-                f"{self.root} already holds a dataset of {info['total_episodes']} episode(s)",
+                f"{self.root} already holds a dataset of {found.total_episodes} episode(s)",
                 field="--dataset-out",
                 hint="pass --resume to add episodes to it, or choose another folder",
             )
-        self._adopt_sizes(info)
-        self._check_compatible(info)
-        self._report_cleanup(layout.remove_uncommitted(self.root))
-        self.total_episodes = int(info["total_episodes"])
-        self.total_frames = int(info["total_frames"])
+        self._adopt_sizes(found.features)
+        self._check_compatible(found)
+        with self._writing():
+            self._report_cleanup(commit.recover(self.root, found.total_episodes))
+        problems = meta.meta_problems(self.root, found)
+        if problems:
+            more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+            raise ROSConfigError(
+                f"cannot resume {self.root}: {problems[0]}{more}",
+                field="--dataset-out",
+                hint=f"repair or restore those files, or record into another folder; "
+                f"openral dataset check {self.root} lists every problem",
+            )
+        self.total_episodes = found.total_episodes
+        self.total_frames = found.total_frames
         self._tasks = read_tasks(self.root)
-        self._outcomes = read_outcome_lines(self.root, self.total_episodes)
-        stats_path = self.root / layout.STATS_PATH
-        if stats_path.exists():
-            self._merged = stats.from_json(json.loads(stats_path.read_text(encoding="utf-8")))
+        self._outcomes = meta.read_outcome_lines(self.root, self.total_episodes)
+        self._merged = meta.read_stats(self.root) or {}
+        self._check_writable()
 
-    def _adopt_sizes(self, info: dict[str, Any]) -> None:
+    def _open_new(self) -> None:
+        """No ``info.json``: an interrupted first episode of ours is put back; any other file is refused."""
+        with self._writing():
+            self._report_cleanup(commit.recover(self.root, 0))
+        foreign = layout.foreign_files(self.root)
+        if foreign:
+            listed = ", ".join(str(p.relative_to(self.root)) for p in foreign[:3])
+            if len(foreign) > 3:
+                listed += f" and {len(foreign) - 3} more"
+            raise ROSConfigError(
+                f"{self.root} is not an openral dataset: it has no {layout.INFO_PATH} but holds {listed}",
+                field="--dataset-out",
+                hint="record into an empty or new folder; openral never deletes files it did not write",
+            )
+        self._check_writable()
+
+    def _check_writable(self) -> None:
+        """Prove the folder takes a synced file now, before the first tick rather than at the first commit."""
+        with self._writing():
+            layout.check_writable(self.root)
+
+    @contextlib.contextmanager
+    def _writing(self) -> Iterator[None]:
+        try:
+            yield
+        except OSError as exc:
+            raise ROSConfigError(
+                f"cannot write into {self.root}: {exc.strerror or exc}",
+                field="--dataset-out",
+                hint="choose a folder you can write to, on a disk with room",
+            ) from exc
+
+    def _adopt_sizes(self, features: dict[str, dict[str, Any]]) -> None:
         """Cameras whose size was left open take the size the dataset already has."""
         for index, cam in enumerate(self.cameras):
-            spec = info.get("features", {}).get(schema.video_key(cam.sensor_id))
-            if not cam.width and spec is not None:
+            spec = features.get(schema.video_key(cam.sensor_id))
+            if not cam.width and spec is not None and spec["dtype"] == "video":
                 height, width, _channels = spec["shape"]
                 self.cameras[index] = schema.CameraSpec(cam.sensor_id, width, height)
         self.features = self._features()
 
-    def _check_compatible(self, info: dict[str, Any]) -> None:
+    def _check_compatible(self, found: meta.DatasetMeta) -> None:
         problems = []
-        if info.get("codebase_version") != layout.CODEBASE_VERSION:
-            problems.append(f"codebase_version {info.get('codebase_version')!r}, not {layout.CODEBASE_VERSION!r}")
-        if info.get("fps") != self.fps:
-            problems.append(f"fps {info.get('fps')} (this recording: {self.fps})")
-        theirs = {k: _signature(v) for k, v in info.get("features", {}).items()}
+        if found.fps != self.fps:
+            problems.append(f"fps {found.fps} (this recording: {self.fps})")
+        theirs = {k: _signature(v) for k, v in found.features.items()}
         ours = {k: _signature(v) for k, v in self.features.items()}
         if theirs != ours:
             missing = sorted(set(ours) - set(theirs))
@@ -217,9 +272,12 @@ class LeRobotDatasetSink:
         idx = self.total_episodes
         task_index = self._tasks.get(task, len(self._tasks))
         folder = self.root / layout.STAGING_DIR / f"episode-{idx:06d}"
-        if folder.exists():
-            shutil.rmtree(folder)
-        folder.mkdir(parents=True)
+        try:
+            if folder.exists():
+                commit.discard(self.root, folder, committed=self.total_episodes)
+            folder.mkdir(parents=True)
+        except OSError as exc:
+            raise ROSRuntimeError(f"cannot write into {self.root}: {exc.strerror or exc}") from exc
         self._episode = _Episode(idx, task, task_index, folder, {name: [] for name in self._arrow.names})
         return idx
 
@@ -328,13 +386,29 @@ class LeRobotDatasetSink:
             return EpisodeSummary(episode.idx, frames, episode.task, False, repeated)
         try:
             self._commit(episode, frames, success)
-        except Exception:
-            for encoder in episode.encoders.values():
-                encoder.abort()
-            shutil.rmtree(episode.folder, ignore_errors=True)
-            layout.remove_uncommitted(self.root)
+        except Exception as exc:
+            self._put_back(episode)
+            if isinstance(exc, OSError):
+                raise ROSRuntimeError(
+                    f"cannot write episode {episode.idx} into {self.root}: {exc.strerror or exc}; "
+                    f"the dataset keeps its {self.total_episodes} committed episode(s)"
+                ) from exc
             raise
         return EpisodeSummary(episode.idx, frames, episode.task, True, repeated, time.perf_counter() - started)
+
+    def _put_back(self, episode: _Episode) -> None:
+        """After a failed commit: stop the encoders and undo what was moved (left for the next opening if it fails)."""
+        for encoder in episode.encoders.values():
+            with contextlib.suppress(Exception):  # an encoder that failed may be gone already
+                encoder.abort()
+        try:
+            commit.discard(self.root, episode.folder, committed=self.total_episodes)
+        except OSError as exc:
+            _log.error(
+                "could not put the dataset back after a failed commit; opening it again will",
+                dataset=str(self.root),
+                error=str(exc),
+            )
 
     def close(self) -> None:
         """Discard an episode still open, stop the encoder processes and remove the staging area."""
@@ -343,9 +417,10 @@ class LeRobotDatasetSink:
         for process in self._processes.values():
             process.close()
         self._processes.clear()
-        staging = self.root / layout.STAGING_DIR
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
+        try:
+            commit.recover(self.root, self.total_episodes)
+        except OSError as exc:
+            _log.error("could not remove the staging area", dataset=str(self.root), error=str(exc))
 
     # -- commit ----------------------------------------------------------------------------
 
@@ -356,44 +431,51 @@ class LeRobotDatasetSink:
             written = episode.encoders[cam.sensor_id].finish()
             if written != frames:
                 raise ROSRuntimeError(f"camera {cam.sensor_id}: {written} video frames for {frames} rows")
+        folder = episode.folder
         table = pa.table(
             {name: pa.array(values, type=self._arrow.field(name).type) for name, values in episode.rows.items()}
         )
-        data_tmp = episode.folder / "data.parquet"
-        pq.write_table(table, data_tmp)
-        layout.sync_file(data_tmp)
+        layout.write_file(folder / "data.parquet", _parquet_bytes(table))
         episode_stats = self._episode_stats(episode, table)
-        meta_tmp = episode.folder / "episode.parquet"
-        pq.write_table(self._episode_row(episode, frames, episode_stats, success), meta_tmp)
-        layout.sync_file(meta_tmp)
-
-        for cam in self.cameras:
-            layout.move_synced(
-                episode.folder / f"{cam.sensor_id}.mp4",
+        row = self._episode_row(episode, frames, episode_stats, success)
+        layout.write_file(folder / "episode.parquet", _parquet_bytes(row))
+        moves = [
+            commit.Move(
+                folder / f"{cam.sensor_id}.mp4",
                 layout.video_file(self.root, schema.video_key(cam.sensor_id), episode.idx),
             )
-        layout.move_synced(data_tmp, layout.data_file(self.root, episode.idx))
-        layout.move_synced(meta_tmp, layout.episodes_file(self.root, episode.idx))
-        shutil.rmtree(episode.folder, ignore_errors=True)
+            for cam in self.cameras
+        ]
+        moves.append(commit.Move(folder / "data.parquet", layout.data_file(self.root, episode.idx)))
+        moves.append(commit.Move(folder / "episode.parquet", layout.episodes_file(self.root, episode.idx)))
 
         outcome = {
             "episode_index": episode.idx,
             "success": success,
             "repeated_frames": {cam: enc.repeated for cam, enc in episode.encoders.items()},
         }
-        self._outcomes.append(json.dumps(outcome))
-        layout.write_atomic(self.root / layout.OUTCOMES_PATH, ("\n".join(self._outcomes) + "\n").encode("utf-8"))
+        outcomes = [*self._outcomes, json.dumps(outcome)]
         tasks = dict(self._tasks)
         tasks.setdefault(episode.task, episode.task_index)
-        layout.write_atomic(self.root / layout.TASKS_PATH, tasks_parquet_bytes(tasks))
         merged = {
             name: stats.merge_stats([self._merged[name], values]) if name in self._merged else values
             for name, values in episode_stats.items()
         }
-        layout.write_atomic(self.root / layout.STATS_PATH, json.dumps(stats.to_json(merged), indent=2).encode("utf-8"))
         info = self._info(self.total_episodes + 1, self.total_frames + frames, len(tasks))
-        layout.write_atomic(self.root / layout.INFO_PATH, json.dumps(info, indent=2).encode("utf-8"))
+        dataset_files = {  # info.json last: moving it into place is the commit
+            layout.OUTCOMES_PATH: ("\n".join(outcomes) + "\n").encode("utf-8"),
+            layout.TASKS_PATH: tasks_parquet_bytes(tasks),
+            layout.STATS_PATH: json.dumps(stats.to_json(merged), indent=2).encode("utf-8"),
+            layout.INFO_PATH: json.dumps(info, indent=2).encode("utf-8"),
+        }
+        for path, data in dataset_files.items():
+            staged = folder / path
+            layout.write_file(staged, data)
+            moves.append(commit.Move(staged, self.root / path, replaces=True))
+        commit.apply(self.root, folder, episode.idx, moves)
         # Committed: only now does the in-memory view move on.
+        shutil.rmtree(folder, ignore_errors=True)
+        self._outcomes = outcomes
         self._tasks = tasks
         self._merged = merged
         self.total_episodes += 1
@@ -511,25 +593,11 @@ def tasks_parquet_bytes(tasks: dict[str, int]) -> bytes:
         "creator": {"library": "pyarrow", "version": pa.__version__},
         "pandas_version": "2.2.0",
     }
-    table = table.replace_schema_metadata({b"pandas": json.dumps(pandas_meta).encode("utf-8")})
+    return _parquet_bytes(table.replace_schema_metadata({b"pandas": json.dumps(pandas_meta).encode("utf-8")}))
+
+
+def _parquet_bytes(table: pa.Table) -> bytes:
+    """``table`` as a parquet file in memory: written to disk by :func:`layout.write_file`, synced, like every file."""
     sink = pa.BufferOutputStream()
     pq.write_table(table, sink)
     return bytes(sink.getvalue().to_pybytes())
-
-
-def read_outcome_lines(root: Path, committed: int) -> list[str]:
-    """The outcome lines of the committed episodes (a line of an episode never committed is dropped)."""
-    path = root / layout.OUTCOMES_PATH
-    if not path.exists():
-        return []
-    lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
-    return [line for line in lines if json.loads(line).get("episode_index", committed) < committed]
-
-
-def read_tasks(root: Path) -> dict[str, int]:
-    """Task string → task index, from ``meta/tasks.parquet`` (empty when there is none)."""
-    path = root / layout.TASKS_PATH
-    if not path.exists():
-        return {}
-    table = pq.read_table(path)
-    return dict(zip(table.column("task").to_pylist(), table.column("task_index").to_pylist(), strict=True))

@@ -196,4 +196,5 @@ class QueuedObserver(TickObserver):
             handler(*args, **kwargs)
         except Exception as exc:  # one bad item must not stop the observer
             self.errors += 1
-            _log.error("observer failed on an item", observer=self._thread.name, error=str(exc), exc_info=exc)
+            _log.error("observer failed on an item", observer=self._thread.name, error=str(exc))
+            _log.debug("observer failure", observer=self._thread.name, exc_info=exc)  # the traceback: --debug only

@@ -8,12 +8,14 @@ import av
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from structlog.testing import capture_logs
 
-from openral_core import FrameEncoding, ROSConfigError, SensorFrame, SensorReaderConfig
+from openral_core import FrameEncoding, ROSConfigError, ROSRuntimeError, SensorFrame, SensorReaderConfig
 from openral_dataset import layout, schema
 from openral_dataset.check import check_dataset
 from openral_dataset.recorder import RolloutRecorder
 from openral_dataset.testing import numbered_pixels, read_number
+from openral_dataset.video import StreamingVideoEncoder
 from openral_dataset.writer import LeRobotDatasetSink, read_tasks
 from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
@@ -193,3 +195,47 @@ def test_replay_finds_a_rows_tick_and_the_frame_the_skill_saw(tmp_path: Path) ->
     missing = CliRunner().invoke(cli, ["replay", "--frame", f"{root}/0/6"])
     assert missing.exit_code == 2
     assert "0..5" in missing.output
+
+
+def test_the_first_write_failure_stops_recording_and_keeps_the_committed_episodes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    clock = FakeClock()
+    runner, recorder = _runner(tmp_path, clock)
+    stops: list[str] = []
+    recorder.on_failure = lambda: stops.append("stop")
+    runner.activate()
+    runner.episode_start("pick")
+    runner.run(5)
+    runner.episode_end(success=True)
+    assert recorder.wait_for_commit(30)
+
+    real_add = StreamingVideoEncoder.add
+    frames = iter(range(1000))
+
+    def dying(self: StreamingVideoEncoder, frame: SensorFrame | None) -> bool:
+        if next(frames) == 3:
+            raise ROSRuntimeError("the video encoder of camera front exited (-9)")
+        return real_add(self, frame)
+
+    monkeypatch.setattr(StreamingVideoEncoder, "add", dying)
+    with capture_logs() as logs:
+        runner.episode_start("pick")
+        runner.run(8)  # every tick after the failure would have failed too
+        runner.episode_end(success=True)
+        runner.episode_start("pick")  # nothing more is recorded
+        runner.run(4)
+        runner.episode_end(success=True)
+        runner.deactivate()
+
+    assert recorder.failure is not None
+    assert str(tmp_path / "ds") in str(recorder.failure)
+    assert "encoder of camera front exited" in str(recorder.failure)
+    assert stops == ["stop"]
+    assert recorder.errors == 1
+    errors = [e for e in logs if e["log_level"] == "error"]
+    assert [e["event"] for e in errors] == ["recording stopped"]
+    assert "exc_info" not in errors[0]  # one line; the traceback only at debug level
+    report = check_dataset(tmp_path / "ds")
+    assert report.problems == []
+    assert (report.episodes, report.frames) == (1, 5)
