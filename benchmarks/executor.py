@@ -25,6 +25,7 @@ from openral_core import Action, JointState, RealtimeConfig, RobotManifest, RSki
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.null import NullHAL
 from openral_rskill.base import RSkillBase
+from openral_rskill.chunks import ChunkRequest
 from openral_rskill.executor import ChunkedExecutor
 from openral_rskill.noop import HoldSkill
 from openral_runner.hardware import HardwareRunner
@@ -113,7 +114,7 @@ def _step_cost(seconds: float) -> None:
         f"(target p50 <= 10 µs)"
     )
 
-    def infer(world: WorldState) -> np.ndarray:
+    def infer(_request: ChunkRequest) -> np.ndarray:
         time.sleep(0.06)
         return np.zeros((CHUNK, 6))
 

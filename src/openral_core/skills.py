@@ -31,6 +31,13 @@ class RSkillInfo(BaseModel):
     control_mode: ControlMode = ControlMode.JOINT_POSITION
     chunk_size: int = Field(default=1, ge=1)
     description: str = ""
+    observation_steps: int = Field(
+        default=1,
+        ge=1,
+        le=64,
+        description="Observations one inference reads, the current one included (a Diffusion policy's n_obs_steps); "
+        "the chunk executor keeps the earlier ones by tick.",
+    )
     observation: list[str] = Field(
         default_factory=list,
         description="What the skill reads of the world state (joint_state, images.<sensor>, privileged.<name>, "

@@ -80,7 +80,9 @@ def model_hash(skill_id: str, params: Mapping[str, Any], base_dir: Path | None =
     """A digest of what decides a policy's output: the skill, its parameters and every file a parameter names.
 
     A parameter whose text is the path of an existing file (a model, its weights) contributes that
-    file's bytes, so a retrained model under the same name has another hash.
+    file's bytes, and one naming a folder (a LeRobot checkpoint: configuration, weights,
+    processors) the bytes of every file directly in it, so a retrained model under the same name
+    has another hash.
     """
     digest = hashlib.sha256()
     digest.update(skill_id.encode("utf-8"))
@@ -89,16 +91,24 @@ def model_hash(skill_id: str, params: Mapping[str, Any], base_dir: Path | None =
         path = Path(value).expanduser()
         if not path.is_absolute() and base_dir is not None:
             path = base_dir / path
-        try:
-            is_file = len(value) < 4096 and path.is_file()
-        except OSError:
-            is_file = False
-        if is_file:
-            digest.update(path.name.encode("utf-8"))
-            with path.open("rb") as handle:
+        for file in _files_named(path) if len(value) < 4096 else []:
+            digest.update(file.name.encode("utf-8"))
+            with file.open("rb") as handle:
                 for block in iter(lambda: handle.read(1 << 20), b""):
                     digest.update(block)
     return digest.hexdigest()
+
+
+def _files_named(path: Path) -> list[Path]:
+    """The file ``path`` names, or the files directly in the folder it names (sorted); none otherwise."""
+    try:
+        if path.is_file():
+            return [path]
+        if path.is_dir():
+            return sorted(child for child in path.iterdir() if child.is_file())
+    except OSError:  # a name too long to be a path, a folder that cannot be read
+        pass
+    return []
 
 
 def _texts(value: Any) -> list[str]:

@@ -37,6 +37,7 @@ from openral_remote.meta import PolicyMeta
 from openral_remote.observation import world_from_fields
 from openral_remote.session import open_session
 from openral_rskill.base import RSkillBase
+from openral_rskill.chunks import ChunkRequest
 
 _log = structlog.get_logger(__name__)
 
@@ -257,9 +258,8 @@ class PolicyServer:
             self.skill.recover()
             self.skill.activate()
         started = time.perf_counter()
-        action = self.skill.step(world)
+        rows = np.asarray(self.skill.step_chunk(ChunkRequest(world)), dtype=np.float64)  # the chunk, as one array
         infer_ms = (time.perf_counter() - started) * 1e3
-        rows = np.asarray(action.targets, dtype=np.float64)
         if rows.ndim != 2 or rows.shape[1] != len(self.meta.action_names):
             dims = len(self.meta.action_names)
             raise ROSConfigError(f"the policy returned rows of shape {rows.shape}, not (n, {dims})")

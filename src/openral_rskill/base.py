@@ -37,6 +37,7 @@ from collections.abc import Callable, Mapping
 from time import perf_counter_ns
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
+import numpy as np
 from opentelemetry import trace
 from pydantic import BaseModel
 
@@ -48,8 +49,11 @@ from openral_core.skills import RSkillInfo, RSkillState
 from openral_core.world import WorldState
 from openral_observability import semconv
 from openral_rskill.anchoring import AbsoluteAnchor, Anchor
+from openral_rskill.chunks import ChunkRequest
 
 ParamsT = TypeVar("ParamsT", bound=BaseModel)
+_In = TypeVar("_In")
+_Out = TypeVar("_Out")
 
 _S = RSkillState
 
@@ -141,6 +145,14 @@ class RSkillBase(ABC):
     @abstractmethod
     def _step_impl(self, world_state: WorldState) -> Action:
         """Compute the action for this tick from ``world_state``."""
+
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        """A chunking skill's ``(rows, dims)`` chunk for ``request``; by default the targets of :meth:`_step_impl`.
+
+        Override it to hand the executor the model's array as it is, and to use the request's
+        history or prefix.
+        """
+        return np.asarray(self._step_impl(request.world).targets, dtype=np.float64)
 
     # -- state --------------------------------------------------------------------------------
 
@@ -268,11 +280,24 @@ class RSkillBase(ABC):
             ROSStopRequested: The skill ended the run cooperatively; passed through, no latch.
             ROSUnavailable: Something the skill needs cannot answer now; passed through, no latch.
         """
+        return self._stepped(self._step_impl, world_state)
+
+    def step_chunk(self, request: ChunkRequest) -> np.ndarray:
+        """A chunking skill's chunk for ``request`` as one ``(rows, dims)`` array: what the chunk executor calls.
+
+        The same lifecycle, error latch and latency figures as :meth:`step`.
+
+        Raises:
+            ROSSkillError: As :meth:`step`.
+        """
+        return self._stepped(self._chunk_impl, request)
+
+    def _stepped(self, compute: Callable[[_In], _Out], argument: _In) -> _Out:
         if self._state is not _S.ACTIVE:
             raise self._transition_error("step", (_S.ACTIVE,))
         start = perf_counter_ns()
         try:
-            action = self._step_impl(world_state)
+            output = compute(argument)
         except (ROSEStopRequested, ROSStopRequested, ROSUnavailable):
             raise  # control flow for the runner, or a dependency that may come back: no latch
         except Exception as exc:
@@ -282,7 +307,7 @@ class RSkillBase(ABC):
         self._total_step_ns += elapsed
         self._step_count += 1
         self._max_step_ns = max(self._max_step_ns, elapsed)
-        return action
+        return output
 
     # -- latency ----------------------------------------------------------------------------
 

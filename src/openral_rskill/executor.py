@@ -50,6 +50,7 @@ from openral_core import Action, ControlMode, SeamMode, StarvationFallback, Worl
 from openral_observability import metrics, semconv, tracer
 from openral_observability.deferred import TickTelemetry
 from openral_rskill.anchoring import AbsoluteAnchor, Anchor, UnanchoredRows
+from openral_rskill.chunks import ChunkRequest
 
 _log = structlog.get_logger(__name__)
 
@@ -104,6 +105,9 @@ class _Request:
     epoch: int
     obs_tick: int
     world: WorldState
+    history: tuple[WorldState, ...] = ()
+    prefix: np.ndarray | None = None
+    expected_delay: int = 0
     ready_tick: int | None = None
     """Virtual latency: the tick from which the chunk may be used."""
     rows: np.ndarray | None = None
@@ -120,8 +124,8 @@ def _no_reset() -> None:
 
 _NO_RESET: Final = _no_reset
 
-PolicyFn = Callable[[WorldState], np.ndarray]
-"""Inference: the observation in, a ``(rows, dims)`` chunk out. Runs on the worker only."""
+PolicyFn = Callable[[ChunkRequest], np.ndarray]
+"""Inference: the request (observation, history, prefix) in, a ``(rows, dims)`` chunk out. Runs on the worker only."""
 
 
 class ChunkedExecutor:
@@ -150,6 +154,8 @@ class ChunkedExecutor:
             (no anchoring, no skipping): the naive executor, kept to measure what indexing by tick gains.
         available: Whether the policy's source can be asked now (a remote server's liveliness);
             ``None``: always. Called once per tick on the tick thread, so it must be O(1).
+        observation_steps: Observations each request carries, the current one included: the
+            executor keeps the earlier ticks' (references, O(1) per tick) for policies that read a history.
     """
 
     def __init__(
@@ -175,6 +181,7 @@ class ChunkedExecutor:
         executed_rows: int | None = None,
         stale_start: bool = False,
         available: Callable[[], bool] | None = None,
+        observation_steps: int = 1,
     ) -> None:
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
@@ -198,6 +205,7 @@ class ChunkedExecutor:
         self.executed_rows = executed_rows
         self.stale_start = stale_start or isinstance(self.anchor, UnanchoredRows)
         self._available = available
+        self._history: collections.deque[WorldState] = collections.deque(maxlen=max(0, observation_steps - 1))
         if isinstance(self.anchor, UnanchoredRows) and not stale_start:
             _log.warning(
                 "the policy's rows cannot be anchored at their observation: each chunk runs from its first row "
@@ -242,8 +250,10 @@ class ChunkedExecutor:
         self._telemetry = telemetry
         self._take_arrivals(tick_idx)
         if self._available is not None and not self._available():
+            self._remember(world)
             return self._unavailable(world)
         self._maybe_request(tick_idx, world)
+        self._remember(world)
         if self.virtual_delay is not None and self._done:
             self._take_arrivals(tick_idx)  # a virtual delay of 0: this tick's own chunk
         row = self._row_for(tick_idx)
@@ -259,6 +269,10 @@ class ChunkedExecutor:
         if self._starved_in_row > self.max_starved_ticks and self.fallback is not StarvationFallback.HOLD:
             return Decision(Outcome.FALLBACK if self.fallback is StarvationFallback.SKILL else Outcome.STOP)
         return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
+
+    def _remember(self, world: WorldState) -> None:
+        if self._history.maxlen:
+            self._history.append(world)
 
     def _unavailable(self, world: WorldState) -> Decision:
         """The source is down: its rows are dropped and the fallback decides now."""
@@ -291,6 +305,7 @@ class ChunkedExecutor:
         self._held = None
         self._starved_in_row = 0
         self._in_flight = None
+        self._history.clear()  # a new episode's first request repeats its own first observation
         if self.virtual_delay is not None:
             if reset is not None:
                 reset()
@@ -334,7 +349,7 @@ class ChunkedExecutor:
         ahead = self._base_tick + len(self._targets) - tick_idx
         if ahead > self.latency_ticks_p95() + self.margin_ticks:
             return
-        request = _Request(self._next_id, self._epoch, tick_idx, world)
+        request = _Request(self._next_id, self._epoch, tick_idx, world, history=tuple(self._history))
         self._next_id += 1
         self._in_flight = request
         self.stats.requests += 1
@@ -348,8 +363,12 @@ class ChunkedExecutor:
         if self.virtual_delay is not None:
             index_in_epoch = request.request_id - self._epoch_first_id
             request.ready_tick = tick_idx + max(0, int(self.virtual_delay(index_in_epoch)))
+            request.expected_delay = request.ready_tick - tick_idx
+            request.prefix = self._rows_from(tick_idx)[: request.expected_delay]
             self._run(request)
             return
+        request.expected_delay = self.latency_ticks_p95()
+        request.prefix = self._rows_from(tick_idx)[: request.expected_delay]  # what runs while it infers
         with self._wake:
             self._jobs.append(request)
             self._wake.notify()
@@ -538,12 +557,19 @@ class ChunkedExecutor:
 
     def _run(self, request: _Request) -> None:
         """Infer under the request's span (so spans the policy makes, a remote server's too, are its children)."""
+        asked = ChunkRequest(
+            request.world,
+            obs_tick=request.obs_tick,
+            history=request.history,
+            prefix=request.prefix if request.prefix is not None else np.zeros((0, len(self.action_names))),
+            inference_delay=request.expected_delay,
+        )
         try:
             if request.span is None:
-                self._prepare(request, self._infer(request.world))
+                self._prepare(request, self._infer(asked))
             else:
                 with trace.use_span(request.span, record_exception=False, set_status_on_exception=False):
-                    self._prepare(request, self._infer(request.world))
+                    self._prepare(request, self._infer(asked))
         except Exception as exc:
             request.error = exc
         self._done.append(request)  # deque.append is atomic: the tick thread takes it on its next step

@@ -5,7 +5,8 @@ per-channel means there, waits for the device to finish (so the inference span c
 work, not only its dispatch), and reports the means as the action's confidence while holding the
 pose measured at the episode's start. ``device: cuda`` needs PyTorch with a CUDA device:
 ``configure()`` refuses to start without one, never falling back to the CPU in silence.
-``device: cpu`` computes the same means with numpy.
+``device: cpu`` computes the same means with numpy. ``configure()`` warms the device up (a VGA
+frame reduced three times), so the first tick does not pay for the CUDA context and kernels.
 """
 
 from __future__ import annotations
@@ -86,6 +87,9 @@ class GpuPassthroughSkill(RSkillBase):
                 hint="run on a machine with a CUDA GPU, or set device: cpu explicitly",
             )
         self._torch = torch
+        warm = np.zeros((480, 640, 3), dtype=np.uint8)
+        for _ in range(3):  # CUDA context, kernels and allocator now: the first tick must not pay for them
+            self.channel_means(warm)
 
     def _on_reset(self) -> None:
         self._pose = None

@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import structlog
 from opentelemetry import context, trace
 from opentelemetry.trace import Status, StatusCode
@@ -271,11 +270,8 @@ def _executor_for(
 ) -> ChunkedExecutor:
     """The executor of a chunking skill: its ``step`` (a chunk) runs on the worker, or inline under virtual latency."""
 
-    def infer(world: WorldState) -> np.ndarray:
-        return np.asarray(skill.step(world).targets, dtype=np.float64)
-
     return ChunkedExecutor(
-        infer,
+        skill.step_chunk,
         reset=skill.reset,
         action_names=action_names,
         chunk_size=skill.info.chunk_size,
@@ -294,6 +290,7 @@ def _executor_for(
         virtual_delay=virtual_delay,
         skill_id=skill.info.skill_id,
         control_mode=skill.info.control_mode,
+        observation_steps=skill.info.observation_steps,
     )
 
 

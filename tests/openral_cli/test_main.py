@@ -332,3 +332,21 @@ def test_validate_refuses_a_missing_video_file_that_deploy_would_fail_on(tmp_pat
     assert out.exit_code == 2
     assert "sensors[front].backend_params.device: video file not found" in out.output
     assert str(tmp_path / "clips" / "missing.mp4") in out.output, "relative to the deployment's folder"
+
+
+def test_a_skill_that_finds_its_configuration_wrong_at_configure_exits_2(tmp_path: Path) -> None:
+    try:
+        import torch  # noqa: PLC0415
+
+        if torch.cuda.is_available():
+            pytest.skip("this machine has CUDA: the refusal cannot happen here")
+    except ImportError:
+        pass  # no PyTorch: refused for that, as a configuration error too
+    path = write(
+        tmp_path, NULL_DEPLOYMENT.replace("vla: {id: noop}", "vla: {id: gpu_passthrough, params: {device: cuda}}")
+    )
+    out = CliRunner().invoke(cli, ["deploy", "--config", str(path), "--max-ticks", "3"])
+    assert out.exit_code == 2, out.output
+    errors = [line for line in out.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1, out.output
+    assert "cuda" in errors[0] or "torch" in errors[0]

@@ -66,3 +66,16 @@ def test_a_bad_endpoint_names_the_field_and_the_form():
     settings = ZenohConfig(listen=["tcp/0.0.0.0:7447"]).settings()
     assert settings["transport/link/tx/lease"] == 1000
     assert settings["scouting/multicast/enabled"] is False
+
+
+def test_a_checkpoint_folder_contributes_every_file_in_it(tmp_path: Path) -> None:
+    folder = tmp_path / "pretrained_model"
+    folder.mkdir()
+    (folder / "config.json").write_text("{}")
+    (folder / "model.safetensors").write_bytes(b"weights one")
+    first = model_hash("lerobot_policy", {"path": "pretrained_model"}, tmp_path)
+    (folder / "model.safetensors").write_bytes(b"weights two")
+    second = model_hash("lerobot_policy", {"path": "pretrained_model"}, tmp_path)
+    assert second != first
+    (folder / "policy_postprocessor_step_0_unnormalizer_processor.safetensors").write_bytes(b"stats")
+    assert model_hash("lerobot_policy", {"path": "pretrained_model"}, tmp_path) != second

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from collections.abc import Callable
@@ -11,6 +12,7 @@ import pytest
 
 from openral_core import JointState, PrivilegedState, SeamMode, StarvationFallback, WorldState
 from openral_rskill.anchoring import EndEffectorDeltaAnchor, StateOffsetAnchor
+from openral_rskill.chunks import ChunkRequest
 from openral_rskill.executor import ChunkedExecutor, Outcome
 
 NAMES = ["a", "b"]
@@ -35,7 +37,8 @@ class GatedPolicy:
         self.inferring = False
         self.overlapped = False
 
-    def infer(self, observed: WorldState) -> np.ndarray:
+    def infer(self, request: ChunkRequest) -> np.ndarray:
+        observed = request.world
         self.inferring = True
         self.calls.append(f"infer@{observed.stamp_ns}")
         if self.gated:
@@ -161,9 +164,9 @@ def test_a_slow_policy_at_30_hz_keeps_every_tick_short() -> None:
     """300 ms inference against 33 ms ticks: the tick stays in microseconds and rows match elapsed ticks."""
 
     class Slow(GatedPolicy):
-        def infer(self, observed: WorldState) -> np.ndarray:
+        def infer(self, request: ChunkRequest) -> np.ndarray:
             time.sleep(0.3)
-            k = observed.stamp_ns
+            k = request.world.stamp_ns
             return np.array([[k * 100 + j, -j] for j in range(self.rows)], dtype=float)
 
     policy = Slow(rows=30, gated=False)
@@ -279,7 +282,7 @@ def test_a_request_span_is_a_child_of_the_asking_tick_and_inference_runs_under_i
 
     seen: list[int] = []
 
-    def infer(observed: WorldState) -> np.ndarray:
+    def infer(request: ChunkRequest) -> np.ndarray:
         seen.append(trace.get_current_span().get_span_context().span_id)
         return np.zeros((4, 2))
 
@@ -341,7 +344,7 @@ def test_after_the_source_returns_the_fallback_acts_until_a_chunk_arrives() -> N
 
 
 def test_a_policy_that_times_out_is_counted_late_not_failed() -> None:
-    def infer(observed: WorldState) -> np.ndarray:
+    def infer(request: ChunkRequest) -> np.ndarray:
         raise TimeoutError("no reply before the deadline")
 
     ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=4, virtual_delay=lambda _request: 0)
@@ -349,3 +352,72 @@ def test_a_policy_that_times_out_is_counted_late_not_failed() -> None:
         assert ex.step(tick, world(tick)).outcome is Outcome.NONE
     assert ex.stats.results_late == 3
     assert ex.stats.errors == 0
+
+
+def _drive(ex: ChunkedExecutor, ticks: int) -> dict[int, list[float]]:
+    sent: dict[int, list[float]] = {}
+    for tick in range(ticks):
+        decision = ex.step(tick, world(tick))
+        if decision.action is not None:
+            sent[tick] = decision.action.first
+    return sent
+
+
+def test_the_prefix_is_exactly_the_targets_sent_while_the_policy_infers() -> None:
+    asked: list[ChunkRequest] = []
+
+    def infer(request: ChunkRequest) -> np.ndarray:
+        asked.append(request)
+        k = request.obs_tick
+        return np.array([[k * 100 + j, -j] for j in range(8)], dtype=float)
+
+    ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=8, margin_ticks=1, virtual_delay=lambda _i: 3)
+    sent = _drive(ex, 40)
+    assert len(asked) >= 5
+    assert len(asked[0].prefix) == 0  # nothing buffered yet: nothing runs while the first chunk is computed
+    for request in [r for r in asked[1:] if r.obs_tick + r.inference_delay < 40]:  # whose prefix ran in the test
+        # The rows buffered for the ticks before the chunk lands (the virtual delay: 3), as they are sent.
+        assert request.inference_delay == 3
+        assert 1 <= len(request.prefix) <= 3
+        for offset, row in enumerate(request.prefix):
+            assert sent[request.obs_tick + offset] == row.tolist()
+    assert any(len(request.prefix) == 3 for request in asked)
+
+
+def test_a_skill_that_continues_its_prefix_meets_the_old_chunk_without_a_jump() -> None:
+    def chunk(request: ChunkRequest, *, use_prefix: bool) -> np.ndarray:
+        # A policy whose every chunk ramps up by 1 per tick from where it believes it starts.
+        start = request.prefix[-1, 0] + 1 - request.inference_delay if use_prefix and len(request.prefix) else 0.0
+        return np.array([[start + j, 0.0] for j in range(8)], dtype=float)
+
+    jumps = {}
+    for use_prefix in (True, False):
+        ex = ChunkedExecutor(
+            lambda request, use=use_prefix: chunk(request, use_prefix=use),  # type: ignore[misc]
+            action_names=NAMES,
+            chunk_size=8,
+            virtual_delay=lambda _i: 3,
+        )
+        sent = _drive(ex, 40)
+        values = [sent[t][0] for t in sorted(sent)]
+        jumps[use_prefix] = max(abs(b - a) for a, b in itertools.pairwise(values))
+    assert jumps[True] == 1.0  # continuous: each new chunk picks up where the executed rows will be
+    assert jumps[False] > 1.0  # without the prefix every seam jumps back
+
+
+def test_requests_carry_the_earlier_ticks_observations_and_a_reset_forgets_them() -> None:
+    asked: list[ChunkRequest] = []
+
+    def infer(request: ChunkRequest) -> np.ndarray:
+        asked.append(request)
+        return np.zeros((4, 2))
+
+    ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=4, virtual_delay=lambda _i: 0, observation_steps=3)
+    _drive(ex, 12)
+    first, later = asked[0], asked[-1]
+    assert first.history == ()
+    assert [w.stamp_ns for w in first.observations(3)] == [0, 0, 0]  # the first observation repeated
+    assert [w.stamp_ns for w in later.observations(3)] == [later.obs_tick - 2, later.obs_tick - 1, later.obs_tick]
+    ex.reset()
+    ex.step(20, world(20))
+    assert asked[-1].history == ()

@@ -1,0 +1,197 @@
+"""A LeRobot checkpoint folder, read without LeRobot: what the policy is, reads and predicts.
+
+``lerobot-train`` writes ``pretrained_model/`` with the policy's ``config.json``, its weights
+(``model.safetensors``) and the saved pre- and post-processor pipelines with their
+normalisation statistics. The configuration is plain JSON, so everything a deployment is checked
+against (features, shapes, chunk sizes) is known before PyTorch is imported: ``openral validate``
+refuses a mismatch in a fraction of a second.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+from openral_core import ROSConfigError
+from openral_core.config_files import read_config_file, resolve_user_path
+
+REQUIRED_FILES: Final = (
+    "config.json",
+    "model.safetensors",
+    "policy_preprocessor.json",
+    "policy_postprocessor.json",
+)
+"""What ``PreTrainedPolicy.save_pretrained`` and the processors' ``save_pretrained`` leave in the folder."""
+
+CHUNKING_TYPES: Final = frozenset({"act", "diffusion", "smolvla", "pi0", "pi05", "pi0_fast", "groot"})
+"""Policies whose ``predict_action_chunk`` returns several future actions."""
+
+_HUB_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
+
+STATE: Final = "observation.state"
+ENVIRONMENT_STATE: Final = "observation.environment_state"
+IMAGE_PREFIX: Final = "observation.images."
+ACTION: Final = "action"
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One input or output of the policy as its configuration declares it."""
+
+    key: str
+    kind: str
+    """LeRobot's ``FeatureType``: ``STATE``, ``ENV``, ``VISUAL``, ``ACTION``, ``LANGUAGE``."""
+    shape: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A local ``pretrained_model/`` folder and what its ``config.json`` says.
+
+    Attributes:
+        path: The folder.
+        policy_type: LeRobot's policy type (``act``, ``diffusion``, ...).
+        inputs: The input features by key.
+        action: The action feature.
+        chunk_size: Rows ``predict_action_chunk`` returns (ACT's ``chunk_size``, Diffusion's
+            ``n_action_steps``; 1 for single-step policies).
+        n_action_steps: Rows LeRobot executes of each chunk before asking again.
+        observation_steps: Observations one inference reads (``n_obs_steps``).
+        trained_device: The device the checkpoint was trained on.
+    """
+
+    path: Path
+    policy_type: str
+    inputs: dict[str, Feature]
+    action: Feature
+    chunk_size: int
+    n_action_steps: int
+    observation_steps: int
+    trained_device: str
+
+    @classmethod
+    def read(cls, value: str, base_dir: Path | None = None, *, field: str = "params.path") -> Checkpoint:
+        """The checkpoint in folder ``value``; refused in one line when it is not a complete local one.
+
+        Raises:
+            ROSConfigError: Not a folder (a hub id cannot be fetched here), a file missing, or a
+                configuration this skill cannot run.
+        """
+        path = resolve_user_path(value, base_dir, field=field)
+        try:
+            is_dir = path.is_dir()
+        except OSError:
+            is_dir = False
+        if not is_dir:
+            if not path.exists() and _HUB_ID.match(value):
+                raise ROSConfigError(
+                    f"{value!r} is not a local folder; it looks like a Hugging Face Hub id, and openral never "
+                    "downloads models",
+                    field=field,
+                    hint=f"download it first (huggingface-cli download {value} --local-dir DIR) and give DIR",
+                )
+            raise ROSConfigError(
+                f"{path} is not a folder",
+                field=field,
+                hint="give a checkpoint folder as lerobot-train writes it (…/checkpoints/<step>/pretrained_model)",
+            )
+        missing = [name for name in REQUIRED_FILES if not (path / name).is_file()]
+        if missing:
+            raise ROSConfigError(
+                f"{path} is not a LeRobot checkpoint: it has no {', '.join(missing)}",
+                field=field,
+                hint="point at the pretrained_model folder lerobot-train writes (weights and processors saved)",
+            )
+        config = _json_object(path / "config.json", field)
+        return cls._from_config(path, config, field)
+
+    @classmethod
+    def _from_config(cls, path: Path, config: dict[str, Any], field: str) -> Checkpoint:
+        policy_type = config.get("type")
+        if not isinstance(policy_type, str) or not policy_type:
+            raise ROSConfigError(f"{path / 'config.json'} names no policy type", field=field)
+        inputs = _features(config.get("input_features"), path, field)
+        outputs = _features(config.get("output_features"), path, field)
+        action = outputs.get(ACTION)
+        if action is None or len(action.shape) != 1:
+            raise ROSConfigError(f"{path / 'config.json'} declares no 1-d 'action' output", field=field)
+        n_action_steps = _positive(config, "n_action_steps", path, field, default=1)
+        if policy_type == "diffusion":
+            chunk_size = n_action_steps  # predict_action_chunk returns the executed window of the horizon
+        elif policy_type in CHUNKING_TYPES:
+            chunk_size = _positive(config, "chunk_size", path, field, default=n_action_steps)
+        else:
+            chunk_size = 1
+        return cls(
+            path=path,
+            policy_type=policy_type,
+            inputs=inputs,
+            action=action,
+            chunk_size=chunk_size,
+            n_action_steps=min(n_action_steps, chunk_size),
+            observation_steps=_positive(config, "n_obs_steps", path, field, default=1),
+            trained_device=str(config.get("device") or "cpu"),
+        )
+
+    @property
+    def cameras(self) -> list[str]:
+        """The camera names the policy reads (``observation.images.<name>``)."""
+        return [key.removeprefix(IMAGE_PREFIX) for key in self.inputs if key.startswith(IMAGE_PREFIX)]
+
+    def identity(self) -> str:
+        """SHA-256 of the configuration, the weights and the processors with their statistics."""
+        digest = hashlib.sha256()
+        for file in sorted(p for p in self.path.iterdir() if p.is_file() and _part_of_model(p.name)):
+            digest.update(file.name.encode("utf-8"))
+            with file.open("rb") as handle:
+                for block in iter(lambda: handle.read(1 << 20), b""):
+                    digest.update(block)
+        return digest.hexdigest()
+
+
+def _part_of_model(name: str) -> bool:
+    return name in REQUIRED_FILES or (name.startswith("policy_") and name.endswith(".safetensors"))
+
+
+def _json_object(path: Path, field: str) -> dict[str, Any]:
+    text = read_config_file(path, field=field)
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ROSConfigError(f"{path} is not valid JSON: {exc}", field=field) from exc
+    if not isinstance(data, dict):
+        raise ROSConfigError(f"{path} does not hold a JSON object", field=field)
+    return data
+
+
+def _features(raw: Any, path: Path, field: str) -> dict[str, Feature]:
+    if not isinstance(raw, dict):
+        raise ROSConfigError(f"{path / 'config.json'}: features are not a mapping", field=field)
+    features = {}
+    for key, spec in raw.items():
+        shape = spec.get("shape") if isinstance(spec, dict) else None
+        kind = spec.get("type") if isinstance(spec, dict) else None
+        if (
+            not isinstance(kind, str)
+            or not isinstance(shape, list)
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in shape)
+        ):
+            raise ROSConfigError(f"{path / 'config.json'}: feature {key!r} has no type and shape", field=field)
+        features[str(key)] = Feature(str(key), kind, tuple(shape))
+    return features
+
+
+def _positive(config: dict[str, Any], key: str, path: Path, field: str, *, default: int) -> int:
+    value = config.get(key, default)
+    if value is None:
+        return default
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ROSConfigError(f"{path / 'config.json'}: {key} is {value!r}, not a positive integer", field=field)
+    return value
+
+
+__all__ = ["ACTION", "ENVIRONMENT_STATE", "IMAGE_PREFIX", "REQUIRED_FILES", "STATE", "Checkpoint", "Feature"]

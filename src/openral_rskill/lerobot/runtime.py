@@ -1,0 +1,157 @@
+"""A LeRobot checkpoint loaded through LeRobot's own API, and its inference: the one module importing torch.
+
+Loading is LeRobot's: ``PreTrainedConfig.from_pretrained``, the policy class's
+``from_pretrained`` and ``make_pre_post_processors`` with the saved pipelines and statistics, so
+the policy runs exactly as ``lerobot-eval`` would run it. openral changes three things only, all
+for running offline and on the device asked for: the hub is never contacted
+(``HF_HUB_OFFLINE``), the ImageNet backbone download that ACT and Diffusion configurations
+trigger is turned off (the checkpoint's own weights replace it anyway), and the processors' device
+is the one the deployment names rather than the one the checkpoint was trained on.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")  # before huggingface_hub is imported: never reach for the hub
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from openral_core import ROSConfigError, ROSDependencyMissing
+from openral_rskill.lerobot.checkpoint import STATE, Checkpoint
+
+try:
+    import torch
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+except ImportError as exc:
+    raise ROSDependencyMissing(
+        exc.name or "lerobot",
+        extra="lerobot",
+        needed_for="LeRobot checkpoints (the lerobot_policy skill; lerobot 0.6 needs Python 3.12 or newer)",
+    ) from exc
+
+_FIELD = "params.path"
+
+
+def resolve_device(asked: str) -> str:
+    """The torch device for ``asked`` (``auto``: CUDA, else Apple's MPS, else the CPU).
+
+    Raises:
+        ROSConfigError: ``cuda`` or ``mps`` asked for where there is none: never a silent CPU fallback.
+    """
+    if asked == "auto":
+        if torch.cuda.is_available():
+            return "cuda"
+        if torch.backends.mps.is_available():
+            return "mps"
+        return "cpu"
+    if asked == "cuda" and not torch.cuda.is_available():
+        raise ROSConfigError("device cuda asked for, but PyTorch sees no CUDA device", field="params.device")
+    if asked == "mps" and not torch.backends.mps.is_available():
+        raise ROSConfigError("device mps asked for, but PyTorch sees no MPS device", field="params.device")
+    return asked
+
+
+class LoadedPolicy:
+    """A policy with its pre- and post-processors on one device.
+
+    Args:
+        checkpoint: The folder, read.
+        device: ``cpu``, ``cuda``, ``mps`` or ``auto``.
+        threads: PyTorch's CPU threads (``None``: its default).
+
+    Raises:
+        ROSConfigError: The device is missing, or LeRobot cannot load the folder.
+    """
+
+    def __init__(self, checkpoint: Checkpoint, *, device: str, threads: int | None = None) -> None:
+        self.checkpoint = checkpoint
+        self.device = resolve_device(device)
+        if threads is not None:
+            torch.set_num_threads(threads)
+        path = checkpoint.path
+        try:
+            config = PreTrainedConfig.from_pretrained(path)
+            if getattr(config, "pretrained_backbone_weights", None):
+                config.pretrained_backbone_weights = None  # ImageNet weights, overwritten by the checkpoint's
+            config.device = self.device
+            self.policy: Any = get_policy_class(config.type).from_pretrained(path, config=config)
+            self.pre, self.post = make_pre_post_processors(
+                self.policy.config,
+                pretrained_path=str(path),
+                preprocessor_overrides={"device_processor": {"device": self.device}},
+                postprocessor_overrides={"device_processor": {"device": "cpu"}},
+            )
+        except ROSConfigError:
+            raise
+        except Exception as exc:  # LeRobot and draccus raise their own types for a checkpoint they cannot read
+            raise ROSConfigError(f"LeRobot cannot load {path}: {type(exc).__name__}: {exc}", field=_FIELD) from exc
+        self.policy.eval()
+
+    def state_bound(self) -> float | None:
+        """The largest magnitude ``observation.state`` had in training (from the saved statistics), if known."""
+        for step in getattr(self.pre, "steps", []):
+            stats = getattr(step, "stats", None)
+            if isinstance(stats, dict) and STATE in stats:
+                entry = stats[STATE]
+                if "min" in entry and "max" in entry:
+                    low, high = _numbers(entry["min"]), _numbers(entry["max"])
+                    return float(max(np.abs(low).max(), np.abs(high).max()))
+                if "mean" in entry and "std" in entry:
+                    mean, std = _numbers(entry["mean"]), _numbers(entry["std"])
+                    return float((np.abs(mean) + 3 * std).max())
+        return None
+
+    def reset(self, seed: int | None) -> None:
+        """A new episode: the policy's queues emptied, and its sampling seeded when a seed is given."""
+        self.policy.reset()
+        if seed is not None:
+            torch.manual_seed(seed)
+
+    def chunk(self, observations: Sequence[dict[str, np.ndarray]], task: str) -> np.ndarray:
+        """``(rows, action_dim)`` of the policy's next chunk, in its own units, for the observations (oldest first).
+
+        One observation: LeRobot's preprocessor batches it. Several (a policy reading
+        ``n_obs_steps``): each is preprocessed, then they are stacked on the time axis the policy
+        expects, and its queues are emptied first so the stack is what it reads.
+        """
+        with torch.inference_mode():
+            if len(observations) == 1:
+                batch = self.pre(self._raw(observations[0], task))
+            else:
+                steps = [self.pre(self._raw(o, task)) for o in observations]
+                batch = dict(steps[-1])
+                for key in self.checkpoint.inputs:
+                    batch[key] = torch.stack([s[key] for s in steps], dim=1)
+                self.policy.reset()
+            actions = self.post(self.policy.predict_action_chunk(batch))
+            self._synchronize()
+        return np.asarray(actions.detach().to("cpu", torch.float64).numpy()[0])
+
+    def select(self, observation: dict[str, np.ndarray], task: str) -> np.ndarray:
+        """This tick's action of a single-step policy, in its own units (``select_action``)."""
+        with torch.inference_mode():
+            action = self.post(self.policy.select_action(self.pre(self._raw(observation, task))))
+            self._synchronize()
+        return np.asarray(action.detach().to("cpu", torch.float64).numpy()).reshape(-1)
+
+    def _raw(self, observation: dict[str, np.ndarray], task: str) -> dict[str, Any]:
+        raw: dict[str, Any] = {key: torch.from_numpy(value) for key, value in observation.items()}
+        raw["task"] = task
+        return raw
+
+    def _synchronize(self) -> None:
+        if self.device == "cuda":
+            torch.cuda.synchronize()
+
+
+def _numbers(value: Any) -> np.ndarray:
+    array = value.detach().cpu().numpy() if hasattr(value, "detach") else np.asarray(value)
+    return np.asarray(array, dtype=np.float64).reshape(-1)
+
+
+__all__ = ["LoadedPolicy", "resolve_device"]

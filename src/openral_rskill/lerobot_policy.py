@@ -1,0 +1,188 @@
+"""``lerobot_policy``: a checkpoint trained with LeRobot (ACT, Diffusion, ...) run as an openral skill.
+
+.. code-block:: yaml
+
+    vla:
+      id: lerobot_policy
+      params:
+        path: outputs/train/act_so101/checkpoints/last/pretrained_model
+        device: auto            # cpu | cuda | mps | auto
+        joint_units: degrees    # radians (openral recordings) | degrees | range (LeRobot's SO-101 conventions)
+
+Building the skill reads only the folder's JSON: the policy's inputs are matched to what the
+deployment supplies (:mod:`openral_rskill.lerobot.observation`), its chunk size and history
+length become the skill's, and nothing heavy is imported, so ``openral validate`` is quick and
+needs no torch. ``configure`` loads the policy through LeRobot's own API on the device, checks the
+joint units against the saved normalisation statistics, and runs ``warmup_inferences`` real
+inferences there (CUDA context, kernels, allocator), so the first tick is on time. A chunking
+policy runs behind the chunk executor: its chunk is one array from the model to the executor,
+its first ``rows`` rows used (the checkpoint's ``n_action_steps`` unless overridden).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from typing import Any, Literal, Self
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from openral_core import Action, ControlMode, RobotManifest, ROSConfigError, RSkillInfo, WorldState
+from openral_rskill.anchoring import AbsoluteAnchor, ActionRepresentation, Anchor, StateOffsetAnchor
+from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.chunks import ChunkRequest
+from openral_rskill.lerobot.checkpoint import Checkpoint
+from openral_rskill.lerobot.observation import ObservationMap
+from openral_rskill.lerobot.units import JointUnits, UnitConversion, plausible_units
+
+SKILL_ID = "lerobot_policy"
+
+
+class LeRobotPolicyParams(BaseModel):
+    """``params`` of the ``lerobot_policy`` skill."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    path: str = Field(min_length=1, description="The checkpoint folder (pretrained_model) lerobot-train wrote.")
+    device: Literal["cpu", "cuda", "mps", "auto"] = Field(
+        default="auto", description="Where the policy runs; cuda or mps without one refuses to configure."
+    )
+    joint_units: JointUnits = Field(
+        default="radians",
+        description="The units the policy's state and actions are in: radians (openral's recordings), degrees "
+        "or range (LeRobot's SO-101 conventions, gripper 0-100).",
+    )
+    cameras: dict[str, str] = Field(
+        default_factory=dict, description="Policy camera name -> sensor id, where they differ."
+    )
+    rows: int | None = Field(
+        default=None, ge=1, le=10_000, description="Rows of each chunk used (default: the checkpoint's n_action_steps)."
+    )
+    representation: Literal["absolute", "relative_to_state"] = Field(
+        default="absolute", description="absolute targets, or offsets from the state measured with the observation."
+    )
+    warmup_inferences: int = Field(default=3, ge=0, le=100, description="Inferences run at configure.")
+    threads: int | None = Field(default=None, ge=1, le=256, description="PyTorch CPU threads (default: its own).")
+
+
+class LeRobotPolicySkill(RSkillBase):
+    """A LeRobot checkpoint: observations mapped from the world state, chunks handed over as arrays.
+
+    Args:
+        robot: This robot (its joints are the state's and the action's order).
+        params: The checkpoint and how to run it.
+        rate_hz: The loop's rate.
+
+    Raises:
+        ROSConfigError: Not a complete local checkpoint, an input the deployment cannot supply,
+            or an action of another size than the robot's.
+    """
+
+    def __init__(self, robot: RobotManifest, params: LeRobotPolicyParams, *, rate_hz: float) -> None:
+        super().__init__()
+        self.robot = robot
+        self.params = params
+        self.checkpoint = Checkpoint.read(params.path)
+        action_dims = self.checkpoint.action.shape[0]
+        if action_dims != len(robot.joints):
+            raise ROSConfigError(
+                f"the policy acts on {action_dims} dimensions but '{robot.robot_id}' has {len(robot.joints)} "
+                f"({', '.join(robot.joint_names)})",
+                field="params.path",
+            )
+        self.units = UnitConversion(robot, params.joint_units)
+        self.inputs = ObservationMap(self.checkpoint, robot=robot, units=self.units, cameras=params.cameras)
+        chunking = self.checkpoint.chunk_size > 1
+        rows = params.rows or self.checkpoint.n_action_steps
+        if rows > self.checkpoint.chunk_size:
+            raise ROSConfigError(
+                f"the policy predicts {self.checkpoint.chunk_size} rows per chunk; {rows} cannot be used",
+                field="params.rows",
+            )
+        self.rows = rows if chunking else 1
+        self._policy: Any = None
+        self._info = RSkillInfo(
+            skill_id=SKILL_ID,
+            name=f"LeRobot {self.checkpoint.policy_type} {self.checkpoint.path.name}",
+            control_mode=ControlMode.JOINT_POSITION,
+            chunk_size=self.rows,
+            description=f"{self.checkpoint.policy_type} checkpoint at {self.checkpoint.path}",
+            observation=self.inputs.reads,
+            observation_steps=self.checkpoint.observation_steps,
+        )
+
+    @classmethod
+    def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> Self:
+        return cls(robot, validate_params(LeRobotPolicyParams, params, skill_id=SKILL_ID), rate_hz=rate_hz)
+
+    @property
+    def info(self) -> RSkillInfo:
+        return self._info
+
+    @property
+    def device(self) -> str | None:
+        """The device the policy runs on once configured."""
+        return None if self._policy is None else str(self._policy.device)
+
+    def action_anchor(self) -> Anchor:
+        if ActionRepresentation(self.params.representation) is ActionRepresentation.RELATIVE_TO_STATE:
+            return StateOffsetAnchor(self.robot.joint_names)
+        return AbsoluteAnchor()
+
+    def _on_configure(self) -> None:
+        # Loaded only here: torch and lerobot (the 'lerobot' extra) take seconds to import.
+        runtime = importlib.import_module("openral_rskill.lerobot.runtime")
+        policy = runtime.LoadedPolicy(self.checkpoint, device=self.params.device, threads=self.params.threads)
+        self._check_units(policy.state_bound())
+        self._policy = policy
+        blank = self.inputs.blank()
+        for _ in range(self.params.warmup_inferences):  # on the device: the first tick must not pay for it
+            self._infer([blank] * self.checkpoint.observation_steps, "")
+        policy.reset(None)
+
+    def _check_units(self, bound: float | None) -> None:
+        """Refuse units the training statistics contradict (degrees read as radians moves the arm 57x too far)."""
+        if bound is None or self.inputs.state is None:
+            return
+        seen = plausible_units(bound)
+        declared = self.params.joint_units
+        if (declared == "radians") != (seen == "radians"):
+            raise ROSConfigError(
+                f"the policy's observation.state reached {bound:.3g} in training, which is "
+                f"{'not ' if seen != 'radians' else ''}radians, but joint_units is {declared}",
+                field="params.joint_units",
+                hint="radians for openral recordings; degrees or range for LeRobot's SO-101 datasets",
+            )
+
+    def _on_shutdown(self) -> None:
+        self._policy = None
+
+    def _on_reset(self) -> None:
+        if self._policy is not None:
+            self._policy.reset(self.episode_seed)
+
+    def _infer(self, observations: list[dict[str, np.ndarray]], task: str) -> np.ndarray:
+        rows = self._policy.chunk(observations, task)[: self.rows]
+        return rows if self.units.identity else self.units.to_radians(rows)
+
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        worlds = request.observations(self.checkpoint.observation_steps)
+        return self._infer([self.inputs.arrays(w) for w in worlds], request.world.task or "")
+
+    def _step_impl(self, world_state: WorldState) -> Action:
+        if self.checkpoint.chunk_size > 1:
+            targets = self._chunk_impl(ChunkRequest(world_state))[:1]
+        else:
+            action = self._policy.select(self.inputs.arrays(world_state), world_state.task or "")
+            targets = (action if self.units.identity else self.units.to_radians(action)).reshape(1, -1)
+        return Action(
+            control_mode=self._info.control_mode,
+            joint_names=self.robot.joint_names,
+            targets=targets.tolist(),
+            stamp_ns=world_state.stamp_ns,
+            skill_id=SKILL_ID,
+        )
+
+
+__all__ = ["LeRobotPolicyParams", "LeRobotPolicySkill"]
