@@ -80,6 +80,7 @@ def build_runner(
     skill_params = _skill_params(env, robot, base_dir)
     hal: HAL = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
     skill: RSkillBase = SKILL_REGISTRY[env.vla.id].from_config(skill_params, robot=robot, rate_hz=env.rate_hz)
+    _check_cameras(skill, env)
     safety = _safety_client(env, robot)
     readers = [_build_reader(index, env, hal, robot, base_dir) for index, _ in enumerate(env.sensors)]
     aggregator_kwargs: dict[str, Any] = {
@@ -137,6 +138,20 @@ def check_deployment(env: RobotEnvironment, *, base_dir: Path | None = None) -> 
     for index, _ in enumerate(env.sensors):
         _build_reader(index, env, hal, robot, base_dir)
     _release(None, _fallback_skill(env, robot), _build_observers(env, robot, base_dir))
+
+
+def _check_cameras(skill: RSkillBase, env: RobotEnvironment) -> None:
+    """Every camera the skill says it reads must be a sensor of the deployment: refused now, not at the first tick."""
+    sensors = [sensor.sensor_id for sensor in env.sensors]
+    wanted = [name.removeprefix("images.") for name in skill.info.observation if name.startswith("images.")]
+    missing = [name for name in wanted if name not in sensors]
+    if missing:
+        raise ROSConfigError(
+            f"skill '{skill.info.skill_id}' reads camera(s) {missing}, which the deployment does not have "
+            f"(sensors: {sensors or 'none'})",
+            field="sensors",
+            hint="add the camera under sensors:, or map the policy's camera to one you have",
+        )
 
 
 def _release(skill: RSkillBase | None, fallback: RSkillBase | None, observers: list[TickObserver]) -> None:

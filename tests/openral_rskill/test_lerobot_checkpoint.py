@@ -165,3 +165,19 @@ def test_lerobot_degrees_and_range_conventions_round_trip() -> None:
     jaw = SO101.joints[-1]
     assert UnitConversion(SO101, "degrees").to_policy(np.array([0, 0, 0, 0, 0, jaw.lower]))[-1] == 0.0
     assert UnitConversion(SO101, "range").to_policy(np.array([0, 0, 0, 0, 0, jaw.upper]))[-1] == pytest.approx(100.0)
+
+
+def test_a_deployment_without_the_policys_camera_is_refused_when_built(tmp_path: Path) -> None:
+    from openral_core import RobotEnvironment  # noqa: PLC0415
+    from openral_runner.factory import build_runner  # noqa: PLC0415
+
+    folder = checkpoint(tmp_path)
+    env = RobotEnvironment.model_validate(
+        {
+            "hal": {"robot_id": "so101_follower", "adapter": "null"},
+            "vla": {"id": "lerobot_policy", "params": {"path": str(folder)}},
+            "safety": {"client": "envelope"},
+        }
+    )
+    with pytest.raises(ROSConfigError, match=r"sensors: skill 'lerobot_policy' reads camera\(s\) \['front'\]"):
+        build_runner(env)
