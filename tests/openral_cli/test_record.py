@@ -9,6 +9,8 @@ from __future__ import annotations
 import errno
 import os
 import signal
+import subprocess
+import sys
 from collections.abc import Callable
 from fractions import Fraction
 from pathlib import Path
@@ -347,24 +349,11 @@ def test_a_disk_that_fills_after_episode_one_stops_recording_there(
 def test_a_disk_too_small_for_the_first_episode_exits_1_with_one_line_and_leaves_the_folder_usable(
     tmp_path: Path,
 ) -> None:
-    import subprocess  # noqa: PLC0415
-    import sys  # noqa: PLC0415
 
     out = tmp_path / "ds"
     # A real write failure without a full disk: files may not grow past 4 KiB (EFBIG, "File too large").
-    limited = (
-        "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096)); "
-        "from openral_cli.main import main; sys.argv[0] = 'openral'; main()"
-    )
     args = ["record", "--config", str(HELLO), "--dataset-out", str(out), "--episodes", "3"]
-    proc = subprocess.run(
-        [sys.executable, "-c", limited, *args, "--episode-time-s", "0.5", "--reset-time-s", "0"],
-        stdin=subprocess.DEVNULL,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    proc = _openral_with_small_files([*args, "--episode-time-s", "0.5", "--reset-time-s", "0"])
     assert proc.returncode == 1, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1, proc.stderr
@@ -394,25 +383,28 @@ def test_a_disk_too_small_for_the_first_episode_exits_1_with_one_line_and_leaves
     ids=["deploy", "sim-run"],
 )
 def test_deploy_and_sim_run_exit_1_when_the_dataset_cannot_be_written(tmp_path: Path, command: list[str]) -> None:
-    import subprocess  # noqa: PLC0415
-    import sys  # noqa: PLC0415
-
     out = tmp_path / "ds"
-    limited = (  # files may not grow past 4 KiB: a real write failure (EFBIG) without a full disk
-        "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096)); "
-        "from openral_cli.main import main; sys.argv[0] = 'openral'; main()"
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", limited, *command, "--dataset-out", str(out)],
-        stdin=subprocess.DEVNULL,
-        capture_output=True,
-        text=True,
-        timeout=180,
-        check=False,
-    )
+    proc = _openral_with_small_files([*command, "--dataset-out", str(out)])
     assert proc.returncode == 1, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1, proc.stderr
     assert str(out) in errors[0]
     assert "Traceback" not in proc.stderr
     assert layout.foreign_files(out) == []
+
+
+def _openral_with_small_files(args: list[str]) -> subprocess.CompletedProcess[str]:
+    """``openral ARGS`` in a process whose files may not grow past 4 KiB: a real write failure (EFBIG, "File
+    too large") without filling a disk."""
+    limited = (
+        "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096)); "
+        "from openral_cli.main import main; sys.argv[0] = 'openral'; main()"
+    )
+    return subprocess.run(
+        [sys.executable, "-c", limited, *args],
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
+    )
