@@ -301,3 +301,38 @@ def test_the_hardware_runner_sends_the_policys_rows_tick_by_tick(checkpoints: di
     sent = [tuple(action.first) for action in hal.sent]
     assert len(sent) >= 30
     assert all(row in produced for row in sent)  # every command is a row the policy produced, unchanged
+
+
+def test_a_served_checkpoint_answers_the_chunk_it_computes_locally(checkpoints: dict[str, Path], skill_of: Any) -> None:
+    pytest.importorskip("zenoh", reason="needs the 'remote' extra")
+    from openral_remote.client import RemotePolicyClient  # noqa: PLC0415
+    from openral_remote.config import ZenohConfig  # noqa: PLC0415
+    from openral_remote.keys import PolicyKeys  # noqa: PLC0415
+    from openral_remote.meta import describe, model_hash  # noqa: PLC0415
+    from openral_remote.server import PolicyServer  # noqa: PLC0415
+    from openral_remote.testing import free_endpoint  # noqa: PLC0415
+
+    params = {"path": str(checkpoints["act"]), "device": "cpu", "warmup_inferences": 1}
+    served = LeRobotPolicySkill.from_config(params, robot=SO101, rate_hz=30)
+    keys = PolicyKeys.of(SO101.robot_id, "act")
+    meta = describe(
+        served,
+        policy=keys.policy,
+        robot=SO101.robot_id,
+        action_names=SO101.joint_names,
+        rate_hz=30,
+        model_hash=model_hash("lerobot_policy", params),
+    )
+    endpoint = free_endpoint()
+    world = _world(6)
+    local = skill_of(checkpoints["act"]).step_chunk(ChunkRequest(world))
+    with PolicyServer(served, keys=keys, zenoh=ZenohConfig(listen=[endpoint]), meta=meta):
+        client = RemotePolicyClient(keys, ZenohConfig(connect=[endpoint]), deadline_ms=10_000)
+        try:
+            seen = client.connect(30)
+            remote = client.infer(world)
+        finally:
+            client.close()
+    assert seen.observation == ["joint_state", "images.front", "task"]  # the robot sends only these
+    assert seen.model_hash == meta.model_hash
+    assert np.abs(remote - local).max() <= TOLERANCE
