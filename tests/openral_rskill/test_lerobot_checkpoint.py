@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -181,3 +182,17 @@ def test_a_deployment_without_the_policys_camera_is_refused_when_built(tmp_path:
     )
     with pytest.raises(ROSConfigError, match=r"sensors: skill 'lerobot_policy' reads camera\(s\) \['front'\]"):
         build_runner(env)
+
+
+def test_configure_refuses_as_a_config_error_saying_what_is_needed(tmp_path: Path) -> None:
+    from openral_core import ROSSkillError  # noqa: PLC0415
+
+    skill = LeRobotPolicySkill.from_config({"path": str(checkpoint(tmp_path))}, robot=SO101, rate_hz=30)
+    with pytest.raises(ROSSkillError) as caught:
+        skill.configure()
+    cause = caught.value.__cause__
+    assert isinstance(cause, ROSConfigError)
+    if sys.version_info < (3, 12):  # the extra installs nothing here: say which Python it needs
+        assert "uv sync --python 3.12 --extra lerobot" in str(cause)
+    else:  # LeRobot is there, and the placeholder files are no checkpoint it can load
+        assert "LeRobot cannot load" in str(cause)

@@ -336,3 +336,15 @@ def test_a_served_checkpoint_answers_the_chunk_it_computes_locally(checkpoints: 
     assert seen.observation == ["joint_state", "images.front", "task"]  # the robot sends only these
     assert seen.model_hash == meta.model_hash
     assert np.abs(remote - local).max() <= TOLERANCE
+
+
+def test_one_row_per_chunk_runs_the_policy_every_tick(checkpoints: dict[str, Path], skill_of: Any) -> None:
+    skill = skill_of(checkpoints["act"], rows=1)
+    assert skill.info.chunk_size == 1  # no executor: a step per tick, as LeRobot with n_action_steps 1
+    world = _world(8)
+    action = skill.step(world)
+    policy, pre, post = _lerobot(checkpoints["act"])
+    with torch.inference_mode():
+        expected = post(policy.predict_action_chunk(pre(_lerobot_input(world))))[0, 0].double().numpy()
+    assert action.joint_names == SO101.joint_names
+    assert np.abs(np.asarray(action.first) - expected).max() <= TOLERANCE

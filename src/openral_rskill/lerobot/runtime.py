@@ -12,6 +12,7 @@ is the one the deployment names rather than the one the checkpoint was trained o
 from __future__ import annotations
 
 import os
+import sys
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # before huggingface_hub is imported: never reach for the hub
 
@@ -31,7 +32,11 @@ except ImportError as exc:
     raise ROSDependencyMissing(
         exc.name or "lerobot",
         extra="lerobot",
-        needed_for="LeRobot checkpoints (the lerobot_policy skill; lerobot 0.6 needs Python 3.12 or newer)",
+        needed_for="LeRobot checkpoints (the lerobot_policy skill)",
+        install=None
+        if sys.version_info >= (3, 12)
+        else f"lerobot 0.6 needs Python 3.12 or newer, and this is {sys.version.split()[0]}: "
+        "uv sync --python 3.12 --extra lerobot",
     ) from exc
 
 _FIELD = "params.path"
