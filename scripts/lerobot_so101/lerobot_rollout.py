@@ -95,6 +95,12 @@ def main() -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json-out", type=Path, default=None, help="write per-episode results here")
+    parser.add_argument(
+        "--clip",
+        action="store_true",
+        help="clamp actions into the env's box [-1,-1,-1,0]..[1,1,1,1] as openral's safety check does "
+        "(LeRobot's loop does not; the count of out-of-box actions is reported either way)",
+    )
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
@@ -108,6 +114,9 @@ def main() -> int:
     policy, pre, post = load_policy(args.checkpoint, args.device)
     inputs = set(policy.config.input_features)
     env = make_env(scene)
+    low_box = np.array([-1.0, -1.0, -1.0, 0.0], dtype=np.float32)
+    high_box = np.array([1.0, 1.0, 1.0, 1.0], dtype=np.float32)
+    out_of_box = 0
     episodes = []
     started = time.perf_counter()
     try:
@@ -127,6 +136,10 @@ def main() -> int:
                 with torch.inference_mode():
                     action = post(policy.select_action(pre(batch)))
                 action = action.detach().to("cpu", torch.float32).numpy().reshape(-1)
+                if np.any(action < low_box) or np.any(action > high_box):
+                    out_of_box += 1
+                    if args.clip:
+                        action = np.clip(action, low_box, high_box)
                 observation, _reward, terminated, truncated, info = env.step(action)
                 if info.get(success_key):
                     success, ended_by = True, "success"
@@ -151,10 +164,13 @@ def main() -> int:
         "pc_success": 100.0 * n_success / max(1, len(episodes)),
         "pc_success_ci95": [low, high],
         "wall_s": elapsed,
+        "clip": args.clip,
+        "actions_out_of_box": out_of_box,
         "episodes": episodes,
     }
     print(f"LeRobot loop: {summary['pc_success']:.1f} % success ({n_success}/{len(episodes)}, "
-          f"95 % CI {low:.1f}–{high:.1f} %), {elapsed:.0f} s")
+          f"95 % CI {low:.1f}–{high:.1f} %), {elapsed:.0f} s; {out_of_box} action(s) outside the env's box"
+          f"{' (clamped)' if args.clip else ''}")
     if args.json_out is not None:
         args.json_out.write_text(json.dumps(summary, indent=2))
     return 0

@@ -7,6 +7,7 @@ gain or a height of 10^308 must be an exit-2 error that names the field, never a
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,7 @@ from openral_hal.manifests import load_robot_manifest
 from openral_rskill.base import RSkillBase
 from openral_rskill.gpu_passthrough import GpuPassthroughParams
 from openral_rskill.hello import HelloParams
+from openral_rskill.lerobot_policy import LeRobotPolicyParams
 from openral_rskill.noop import HoldParams
 from openral_rskill.onnx_policy import OnnxPolicyParams
 from openral_runner.factory import SKILL_REGISTRY
@@ -43,6 +45,7 @@ SKILLS: dict[str, tuple[type[BaseModel], dict[str, Any]]] = {
     "so101_pick_expert": (PickParams, {}),
     "so101_pickplace_expert": (PickPlaceParams, {}),
     "metaworld_expert": (MetaWorldExpertParams, {"task": "reach-v3"}),
+    "lerobot_policy": (LeRobotPolicyParams, {"path": "<checkpoint>"}),  # a checkpoint folder, made per test
 }
 
 HOSTILE_NUMBERS: tuple[float | int, ...] = (-5, -(2**70), 2**70, 1e308, -1e308, math.nan, math.inf, -math.inf)
@@ -77,9 +80,29 @@ def _build(skill_id: str, params: dict[str, Any], robot: RobotManifest) -> RSkil
     return skill
 
 
+def _lerobot_checkpoint(folder: Path) -> str:
+    """A checkpoint folder as lerobot-train lays it out; building the skill reads only its JSON."""
+    folder.mkdir()
+    for name in ("model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
+        (folder / name).write_text("{}")
+    config = {
+        "type": "act",
+        "input_features": {"observation.state": {"type": "STATE", "shape": [6]}},
+        "output_features": {"action": {"type": "ACTION", "shape": [6]}},
+        "chunk_size": 20,
+        "n_action_steps": 10,
+    }
+    (folder / "config.json").write_text(json.dumps(config))
+    return str(folder)
+
+
 @pytest.mark.parametrize("skill_id", sorted(SKILLS))
-def test_hostile_numbers_are_config_errors_naming_the_field(skill_id: str, robot: RobotManifest) -> None:
+def test_hostile_numbers_are_config_errors_naming_the_field(
+    skill_id: str, robot: RobotManifest, tmp_path: Path
+) -> None:
     model, base = SKILLS[skill_id]
+    if base.get("path") == "<checkpoint>":
+        base = {"path": _lerobot_checkpoint(tmp_path / "pretrained_model")}
     _build(skill_id, base, robot).shutdown()  # the base parameters are good
     for name in _numeric_fields(model):
         for value in HOSTILE_NUMBERS:
