@@ -72,13 +72,6 @@ def test_a_file_or_missing_folder_is_refused(tmp_path: Path) -> None:
             Checkpoint.read(value)
 
 
-def test_the_identity_changes_with_the_weights(tmp_path: Path) -> None:
-    folder = checkpoint(tmp_path)
-    before = Checkpoint.read(str(folder)).identity()
-    (folder / "model.safetensors").write_bytes(b"other weights")
-    assert Checkpoint.read(str(folder)).identity() != before
-
-
 def test_a_feature_openral_cannot_supply_is_a_config_error_naming_it(tmp_path: Path) -> None:
     folder = checkpoint(
         tmp_path,

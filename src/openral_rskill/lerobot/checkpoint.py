@@ -9,7 +9,6 @@ refuses a mismatch in a fraction of a second.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from dataclasses import dataclass
@@ -141,20 +140,6 @@ class Checkpoint:
     def cameras(self) -> list[str]:
         """The camera names the policy reads (``observation.images.<name>``)."""
         return [key.removeprefix(IMAGE_PREFIX) for key in self.inputs if key.startswith(IMAGE_PREFIX)]
-
-    def identity(self) -> str:
-        """SHA-256 of the configuration, the weights and the processors with their statistics."""
-        digest = hashlib.sha256()
-        for file in sorted(p for p in self.path.iterdir() if p.is_file() and _part_of_model(p.name)):
-            digest.update(file.name.encode("utf-8"))
-            with file.open("rb") as handle:
-                for block in iter(lambda: handle.read(1 << 20), b""):
-                    digest.update(block)
-        return digest.hexdigest()
-
-
-def _part_of_model(name: str) -> bool:
-    return name in REQUIRED_FILES or (name.startswith("policy_") and name.endswith(".safetensors"))
 
 
 def _json_object(path: Path, field: str) -> dict[str, Any]:
