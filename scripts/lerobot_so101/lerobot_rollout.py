@@ -36,6 +36,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
@@ -62,7 +63,7 @@ def wilson(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float,
     return 100 * max(0.0, centre - half), 100 * min(1.0, centre + half)
 
 
-def load_policy(path: Path, device: str):
+def load_policy(path: Path, device: str) -> tuple[Any, Any, Any]:
     """The policy and its processors, loaded as openral_rskill/lerobot/runtime.py loads them."""
     config = PreTrainedConfig.from_pretrained(path)
     if getattr(config, "pretrained_backbone_weights", None):
@@ -79,7 +80,7 @@ def load_policy(path: Path, device: str):
     return policy, pre, post
 
 
-def make_env(scene: dict):
+def make_env(scene: dict) -> Any:
     """The env openral's so101 adapter builds for the scene."""
     task = str(scene["env_id"]).removeprefix("lerobot_env_so101/")
     return TASKS[task](render_spec=GymRenderingSpec(camera_id="front"), **dict(scene.get("env_kwargs") or {}))
@@ -126,7 +127,7 @@ def main() -> int:
             policy.reset()
             torch.manual_seed(seed)  # as openral's LoadedPolicy.reset(seed) does (ACT at inference draws nothing)
             success, ended_by, steps = False, "max_steps", 0
-            for steps in range(1, max_steps + 1):
+            for steps in range(1, max_steps + 1):  # noqa: B007 (the episode length is reported after the loop)
                 batch = {"observation.state": torch.from_numpy(np.asarray(observation["agent_pos"], dtype=np.float32))}
                 if "observation.environment_state" in inputs:
                     batch["observation.environment_state"] = torch.from_numpy(
@@ -148,8 +149,12 @@ def main() -> int:
                     ended_by = "terminated" if terminated else "truncated"
                     break
             episodes.append({"episode_idx": i, "seed": seed, "success": success, "steps": steps, "ended_by": ended_by})
-            print(f"episode {i:3d} seed {seed:3d}: {'success' if success else 'failure':7s} "
-                  f"after {steps:3d} steps ({ended_by})", file=sys.stderr, flush=True)
+            print(
+                f"episode {i:3d} seed {seed:3d}: {'success' if success else 'failure':7s} "
+                f"after {steps:3d} steps ({ended_by})",
+                file=sys.stderr,
+                flush=True,
+            )
     finally:
         env.close()
     n_success = sum(e["success"] for e in episodes)
@@ -168,9 +173,11 @@ def main() -> int:
         "actions_out_of_box": out_of_box,
         "episodes": episodes,
     }
-    print(f"LeRobot loop: {summary['pc_success']:.1f} % success ({n_success}/{len(episodes)}, "
-          f"95 % CI {low:.1f}–{high:.1f} %), {elapsed:.0f} s; {out_of_box} action(s) outside the env's box"
-          f"{' (clamped)' if args.clip else ''}")
+    print(
+        f"LeRobot loop: {summary['pc_success']:.1f} % success ({n_success}/{len(episodes)}, "
+        f"95 % CI {low:.1f}–{high:.1f} %), {elapsed:.0f} s; {out_of_box} action(s) outside the env's box"
+        f"{' (clamped)' if args.clip else ''}"
+    )
     if args.json_out is not None:
         args.json_out.write_text(json.dumps(summary, indent=2))
     return 0

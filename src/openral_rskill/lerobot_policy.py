@@ -143,8 +143,9 @@ class LeRobotPolicySkill(RSkillBase):
 
     def _check_units(self, bound: float | None) -> None:
         """Refuse units the training statistics contradict (degrees read as radians moves the arm 57x too far)."""
-        if bound is None or self.inputs.state is None:
-            return
+        state = self.inputs.state
+        if bound is None or state is None or state.shape[0] != len(self.robot.joints):
+            return  # a simulator's state vector (velocities, positions in metres): no joint convention to check
         seen = plausible_units(bound)
         declared = self.params.joint_units
         if (declared == "radians") != (seen == "radians"):
