@@ -67,7 +67,7 @@ def test_a_folder_missing_a_file_is_refused_naming_it(tmp_path: Path, missing: s
 
 def test_a_file_or_missing_folder_is_refused(tmp_path: Path) -> None:
     (tmp_path / "model.pt").write_bytes(b"x")
-    for value in (str(tmp_path / "model.pt"), str(tmp_path / "nowhere")):
+    for value in (str(tmp_path / "model.pt"), str(tmp_path / "nowhere"), str(tmp_path / ("m" * 300))):
         with pytest.raises(ROSConfigError, match="is not a folder"):
             Checkpoint.read(value)
 

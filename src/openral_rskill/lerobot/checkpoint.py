@@ -10,6 +10,7 @@ refuses a mismatch in a fraction of a second.
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -81,12 +82,8 @@ class Checkpoint:
                 configuration this skill cannot run.
         """
         path = resolve_user_path(value, base_dir, field=field)
-        try:
-            is_dir = path.is_dir()
-        except OSError:
-            is_dir = False
-        if not is_dir:
-            if not path.exists() and _HUB_ID.match(value):
+        if not os.path.isdir(path):  # os.path: False for any path that cannot be one (a name too long)
+            if not os.path.lexists(path) and _HUB_ID.match(value):
                 raise ROSConfigError(
                     f"{value!r} is not a local folder; it looks like a Hugging Face Hub id, and openral never "
                     "downloads models",
