@@ -14,11 +14,11 @@ from openral_cli.report import format_run_result
 from openral_cli.signals import StopSignals
 from openral_core import RobotEnvironment, ROSStopRequested, RunResult, StopReason
 from openral_observability import semconv, tracer
+from openral_observability.observer import TickObserver
 from openral_observability.propagation import context_from_env
 from openral_observability.setup import setup
 from openral_runner.factory import build_runner
 from openral_runner.hardware import HardwareRunner
-from openral_runner.observer import TickObserver
 
 STOP_EXIT_CODES = {
     StopReason.SIGINT: EXIT_SIGINT,

@@ -33,6 +33,19 @@ _CHANNELS: dict[FrameEncoding, int] = {
     FrameEncoding.MONO16: 1,
 }
 _COMPRESSED = frozenset({FrameEncoding.JPEG, FrameEncoding.PNG})
+# Channel slices that put a colour frame's pixels in RGB or BGR order without copying.
+_RGB_ORDER: dict[FrameEncoding, slice] = {
+    FrameEncoding.RGB8: slice(0, 3),
+    FrameEncoding.RGBA8: slice(0, 3),
+    FrameEncoding.BGR8: slice(2, None, -1),
+    FrameEncoding.BGRA8: slice(2, None, -1),
+}
+_BGR_ORDER: dict[FrameEncoding, slice] = {
+    FrameEncoding.BGR8: slice(0, 3),
+    FrameEncoding.BGRA8: slice(0, 3),
+    FrameEncoding.RGB8: slice(2, None, -1),
+    FrameEncoding.RGBA8: slice(2, None, -1),
+}
 
 FrameBufferType = bytes | bytearray | memoryview | np.ndarray
 
@@ -160,6 +173,45 @@ class SensorFrame(BaseModel):
             writeable=False,
         ).view(dtype)
         return view[:, :, 0] if self.channels == 1 else view
+
+    def as_rgb(self) -> np.ndarray:
+        """The pixels as ``(H, W, 3)`` uint8 RGB: a view (channels reordered by strides, grey broadcast), never a copy.
+
+        Raises:
+            ValueError: No inline data, compressed, or 16-bit grey (no 8-bit colour to show).
+        """
+        return self._colour_view(_RGB_ORDER)
+
+    def as_bgr(self) -> np.ndarray:
+        """The pixels as ``(H, W, 3)`` uint8 BGR (the OpenCV order): a view, never a copy.
+
+        Raises:
+            ValueError: No inline data, compressed, or 16-bit grey.
+        """
+        return self._colour_view(_BGR_ORDER)
+
+    def as_grey(self) -> np.ndarray:
+        """The pixels as ``(H, W)`` uint8 grey: a view of a grey frame, BT.601 luma (one new array) of a colour one.
+
+        The luma uses integer weights summing to 256 (29 B, 150 G, 77 R), so no level can wrap.
+
+        Raises:
+            ValueError: No inline data, compressed, or 16-bit grey.
+        """
+        if self.encoding is FrameEncoding.MONO8:
+            return self.as_array()
+        bgr = self.as_bgr()
+        pixels = bgr.astype(np.uint32)
+        weighted = pixels[..., 0] * 29 + pixels[..., 1] * 150 + pixels[..., 2] * 77 + 128
+        return (weighted >> 8).astype(np.uint8)
+
+    def _colour_view(self, order: dict[FrameEncoding, slice]) -> np.ndarray:
+        if self.encoding is FrameEncoding.MONO16:
+            raise ValueError(f"frame '{self.sensor_id}' is 16-bit grey (depth); it has no 8-bit colour view")
+        pixels = self.as_array()
+        if self.encoding is FrameEncoding.MONO8:
+            return np.broadcast_to(pixels[:, :, None], (self.height, self.width, 3))
+        return pixels[:, :, order[self.encoding]]
 
     def data_bytes(self) -> bytes:
         """The inline payload as ``bytes`` (copies unless it already is ``bytes``)."""

@@ -29,7 +29,7 @@ from openral_core import ROSRuntimeError, TickResult, WorldState
 from openral_dataset import schema
 from openral_dataset.writer import EpisodeSummary, LeRobotDatasetSink
 from openral_observability import metrics, semconv
-from openral_runner.queued_observer import QueuedObserver
+from openral_observability.queued_observer import QueuedObserver
 
 _log = structlog.get_logger(__name__)
 

@@ -31,8 +31,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from openral_core import RobotManifest, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
 from openral_core.config import validate_model
 from openral_core.config_files import resolve_user_path
-from openral_runner.queued_observer import QueuedObserver
-from openral_runner.thumbnails import Thumbnail
+from openral_observability.observer import Thumbnail
+from openral_observability.queued_observer import QueuedObserver
 
 try:
     from mcap.writer import Writer

@@ -43,10 +43,10 @@ from openral_core import (
 )
 from openral_observability import metrics, semconv, trace_id_hex, traceparent
 from openral_observability.deferred import TickTelemetry
+from openral_observability.observer import StartableObserver, TickObserver
 from openral_observability.tick_recorder import TickRecorder
 from openral_runner.clock import Clock, SystemClock
 from openral_runner.gc_policy import BetweenTicksCollector
-from openral_runner.observer import StartableObserver, TickObserver
 from openral_runner.stats import RunStats
 from openral_runner.tick_context import TickContext
 from openral_runner.tick_span import tick_span_attributes

@@ -24,11 +24,11 @@ from openral_core.plugins import (
 )
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.protocol import HAL
+from openral_observability.observer import TickObserver
 from openral_rskill.base import OfflineConfigCheck, RSkillBase
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.clock import Clock
 from openral_runner.hardware import HardwareRunner
-from openral_runner.observer import TickObserver
 from openral_runner.safety import SafetyClient
 from openral_runner.sensor_reader import SensorReader
 from openral_world_state import WorldStateAggregator

@@ -31,13 +31,13 @@ from openral_core import (
 )
 from openral_hal.protocol import HAL
 from openral_observability import metrics, semconv, tracer
+from openral_observability.observer import ThumbnailSubscriber, TickObserver
 from openral_rskill.base import RSkillBase
-from openral_runner.observer import TickObserver
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
 from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
 from openral_runner.skill_runner import SkillRunnerBase, record_error
-from openral_runner.thumbnails import ThumbnailPublisher, ThumbnailSubscriber
+from openral_runner.thumbnails import ThumbnailPublisher
 from openral_runner.tick_context import TickContext
 from openral_world_state import WorldStateAggregator
 

@@ -1,53 +1,5 @@
-"""``TickObserver``: the seam for everything that watches ticks (visualisers, recorders, dashboards).
+"""The observer seam, importable from the runner: it lives in :mod:`openral_observability.observer`."""
 
-Observers are called on the tick thread right after each tick is accounted, so they must
-only hand data over (a reference into a queue) and do their work elsewhere
-(:class:`~openral_runner.queued_observer.QueuedObserver` does that part). An observer that
-raises is logged and detached; it never stops the robot. Observers also hear the episode
-boundaries the runner is given, and are closed (flushed) on every exit path.
+from openral_observability.observer import StartableObserver, Thumbnail, ThumbnailSubscriber, TickObserver
 
-A deployment lists observers in its ``observers:`` block; each is a plugin in the
-``openral.observers`` entry-point group built with
-``Cls.from_config(params, robot=..., env=..., base_dir=...)``, which validates ``params`` with
-its own typed model and opens nothing: no socket, no session, no port (``openral validate``
-builds it). An observer that needs one opens it in ``start()`` (:class:`StartableObserver`), which
-the runner calls once when it activates, before the first tick. Observers subclass
-:class:`TickObserver` and override what they need.
-"""
-
-from __future__ import annotations
-
-from typing import Protocol, runtime_checkable
-
-from openral_core import TickResult, WorldState
-
-
-@runtime_checkable
-class TickObserver(Protocol):
-    """Receives every tick and the world state the skill saw (``None`` when none was built)."""
-
-    def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
-        """Take note of one tick; must not block."""
-
-    def on_episode_start(self, episode_idx: int, task: str) -> None:
-        """An episode began: the ticks that follow belong to it, under ``task``."""
-        return
-
-    def on_episode_end(self, episode_idx: int, *, success: bool, keep: bool = True) -> None:
-        """The episode ended; ``keep=False`` means it is to be thrown away (a re-recorded take)."""
-        return
-
-    def close(self) -> None:
-        """Flush and release; called once when the runner deactivates."""
-
-
-@runtime_checkable
-class StartableObserver(Protocol):
-    """An observer that opens what it needs (a server's port, a Zenoh session) when the runner starts.
-
-    ``start`` is called once at activation, before the first tick, and must be idempotent; a
-    failure there rolls the start-up back. ``close`` still ends every observer, started or not.
-    """
-
-    def start(self) -> None:
-        """Open what building the observer deliberately left closed."""
+__all__ = ["StartableObserver", "Thumbnail", "ThumbnailSubscriber", "TickObserver"]

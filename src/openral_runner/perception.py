@@ -29,6 +29,7 @@ import numpy as np
 from openral_core import FrameEncoding, ROSConfigError, TickResult, WorldState
 from openral_core.config import validate_model
 from openral_core.config_files import is_regular_file, require_user_file, resolve_user_path
+from openral_observability.observer import TickObserver
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.backends.gstreamer.perception_tee import (
     EventDetector,
@@ -37,7 +38,6 @@ from openral_runner.backends.gstreamer.perception_tee import (
     PerceptionEventPublisher,
     SceneChangeDetector,
 )
-from openral_runner.observer import TickObserver
 from openral_runner.perception_params import PerceptionParams
 
 

@@ -30,10 +30,10 @@ from openral_core import (
 )
 from openral_core.actions import action_problem
 from openral_observability import metrics, semconv
+from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
 from openral_rskill.executor import ChunkedExecutor, Outcome
 from openral_runner.base import InferenceRunnerBase
-from openral_runner.observer import TickObserver
 from openral_runner.safety import NullSafetyClient, SafetyClient
 
 _log = structlog.get_logger(__name__)

@@ -17,8 +17,6 @@ import io
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 import structlog
@@ -26,7 +24,7 @@ from PIL import Image
 
 from openral_core import FrameEncoding, SensorFrame, TickResult, WorldState
 from openral_observability import semconv, tracer
-from openral_runner.observer import TickObserver
+from openral_observability.observer import Thumbnail, TickObserver
 
 _log = structlog.get_logger(__name__)
 
@@ -40,26 +38,6 @@ _TO_RGB: dict[FrameEncoding, Callable[[np.ndarray], np.ndarray]] = {
     FrameEncoding.BGRA8: lambda a: a[:, :, 2::-1],
     FrameEncoding.MONO8: lambda a: a,
 }
-
-
-@dataclass(frozen=True)
-class Thumbnail:
-    """One encoded thumbnail."""
-
-    sensor_id: str
-    stamp_ns: int
-    width: int
-    height: int
-    jpeg: bytes
-    frame_id: str | None = None
-
-
-@runtime_checkable
-class ThumbnailSubscriber(Protocol):
-    """An observer that also takes the runner's camera thumbnails (called on the thumbnail worker thread)."""
-
-    def on_thumbnail(self, thumb: Thumbnail) -> None:
-        """Take one thumbnail; must not block for long."""
 
 
 def encode_thumbnail(frame: SensorFrame, *, quality: int = 70) -> Thumbnail | None:

@@ -15,9 +15,9 @@ from openral_core import (
     TickResult,
     WorldState,
 )
+from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
 from openral_runner.factory import SKILL_REGISTRY
-from openral_runner.observer import TickObserver
 from openral_sim.env import EnvSpec, make_env
 from openral_sim.runner import SimRunner
 

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from openral_core import EpisodeResult, ROSConfigError, ROSDependencyMissing, SimEnvironment
-from openral_runner.observer import TickObserver
+from openral_observability.observer import TickObserver
 from openral_sim.build import EpisodeBatch, SkillFailed, run_episodes
 from openral_sim.env import EnvSpec
 

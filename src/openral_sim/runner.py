@@ -37,9 +37,9 @@ from openral_core import (
     WithheldReason,
     WorldState,
 )
+from openral_observability.queued_observer import QueuedObserver
 from openral_rskill.base import RSkillBase
 from openral_runner.frame_slot import frame_from_array
-from openral_runner.queued_observer import QueuedObserver
 from openral_runner.safety import SafetyClient
 from openral_runner.skill_runner import SkillRunnerBase
 from openral_runner.tick_context import TickContext

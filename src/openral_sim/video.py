@@ -12,7 +12,7 @@ from typing import Any
 import structlog
 
 from openral_core import ROSDependencyMissing, TickResult, WorldState
-from openral_runner.queued_observer import QueuedObserver
+from openral_observability.queued_observer import QueuedObserver
 
 try:
     import av

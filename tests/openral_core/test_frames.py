@@ -319,3 +319,61 @@ def test_data_bytes_copies_only_when_needed() -> None:
     raw = bytes(range(12))
     assert _frame(data=raw).data_bytes() is raw
     assert _frame(data=np.frombuffer(raw, np.uint8)).data_bytes() == raw
+
+
+# -- colour views ----------------------------------------------------------------------
+
+
+def _colour_frame(encoding: FrameEncoding, pixels: np.ndarray) -> SensorFrame:
+    return SensorFrame(
+        sensor_id="cam", stamp_ns=1, width=pixels.shape[1], height=pixels.shape[0], encoding=encoding, data=pixels
+    )
+
+
+@pytest.mark.parametrize(
+    ("encoding", "first_pixel"),
+    [
+        (FrameEncoding.RGB8, [10, 20, 30]),
+        (FrameEncoding.BGR8, [30, 20, 10]),
+        (FrameEncoding.RGBA8, [10, 20, 30, 255]),
+        (FrameEncoding.BGRA8, [30, 20, 10, 255]),
+    ],
+)
+def test_colour_views_agree_on_every_encoding_without_copying(encoding: FrameEncoding, first_pixel: list[int]) -> None:
+    pixels = np.zeros((4, 6, len(first_pixel)), np.uint8)
+    pixels[0, 0] = first_pixel
+    frame = _colour_frame(encoding, pixels)
+    assert frame.as_rgb()[0, 0].tolist() == [10, 20, 30]
+    assert frame.as_bgr()[0, 0].tolist() == [30, 20, 10]
+    assert np.shares_memory(frame.as_rgb(), pixels)
+    assert np.shares_memory(frame.as_bgr(), pixels)
+    assert frame.as_rgb().shape == frame.as_bgr().shape == (4, 6, 3)
+
+
+def test_grey_is_bt601_luma_of_colour_and_a_view_of_grey() -> None:
+    colour = np.zeros((2, 2, 3), np.uint8)
+    colour[0, 0] = [255, 0, 0]  # pure red in RGB
+    colour[0, 1] = [255, 255, 255]
+    grey = _colour_frame(FrameEncoding.RGB8, colour).as_grey()
+    assert grey.shape == (2, 2)
+    assert grey.dtype == np.uint8
+    assert grey[0, 0] == (255 * 77 + 128) >> 8
+    assert grey[0, 1] == 255
+    assert grey[1, 1] == 0
+    assert np.array_equal(_colour_frame(FrameEncoding.BGR8, colour[..., ::-1].copy()).as_grey(), grey)
+    mono = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    mono_frame = _colour_frame(FrameEncoding.MONO8, mono)
+    assert np.shares_memory(mono_frame.as_grey(), mono)
+    rgb = mono_frame.as_rgb()
+    assert rgb.shape == (3, 4, 3)
+    assert np.array_equal(rgb[..., 2], mono)
+    assert np.shares_memory(rgb, mono)
+
+
+def test_colour_views_refuse_what_has_no_8bit_colour() -> None:
+    depth = SensorFrame(sensor_id="depth", stamp_ns=1, width=2, height=2, encoding=FrameEncoding.MONO16, data=bytes(8))
+    with pytest.raises(ValueError, match="16-bit"):
+        depth.as_rgb()
+    jpeg = SensorFrame(sensor_id="cam", stamp_ns=1, width=2, height=2, encoding=FrameEncoding.JPEG, data=b"\xff\xd8")
+    with pytest.raises(ValueError, match="compressed"):
+        jpeg.as_bgr()

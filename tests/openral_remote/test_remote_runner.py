@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 
 from openral_core import SimEnvironment, TickResult, WorldState
+from openral_observability.observer import TickObserver
 from openral_remote.testing import POLICY, ROBOT
-from openral_runner.observer import TickObserver
 from openral_sim.build import build_sim_runner
 
 pytestmark = pytest.mark.timeout(120)

@@ -24,10 +24,10 @@ from openral_core import (
     WithheldReason,
 )
 from openral_hal.testing import RecordingHAL
+from openral_observability.observer import TickObserver
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.clock import SystemClock
 from openral_runner.hardware import HardwareRunner
-from openral_runner.observer import TickObserver
 from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
 from openral_runner.testing import FakeClock, ScriptedReader
 from openral_world_state import WorldStateAggregator

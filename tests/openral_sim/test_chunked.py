@@ -18,8 +18,8 @@ from openral_core import (
     WithheldReason,
     WorldState,
 )
+from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
-from openral_runner.observer import TickObserver
 from openral_sim.envs.mock import MockParams, MockReachEnv
 from openral_sim.runner import SimRunner
 

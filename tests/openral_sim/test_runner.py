@@ -20,8 +20,8 @@ from openral_core import (
     WithheldReason,
     WorldState,
 )
+from openral_observability.observer import TickObserver
 from openral_rskill.testing import ScriptedSkill
-from openral_runner.observer import TickObserver
 from openral_sim.build import SkillFailed, build_sim_runner, run_episodes
 from openral_sim.envs.mock import MockParams, MockReachEnv
 from openral_sim.runner import SimRunner

@@ -52,8 +52,7 @@ from openral_core import (
     WorldState,
 )
 from openral_core.config import validate_model
-from openral_runner.observer import TickObserver
-from openral_runner.thumbnails import Thumbnail
+from openral_observability.observer import Thumbnail, TickObserver
 
 try:
     import foxglove

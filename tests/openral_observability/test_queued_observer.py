@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 
 from openral_core import ROSConfigError, TickResult, WorldState
-from openral_runner.queued_observer import QueuedObserver
+from openral_observability.queued_observer import QueuedObserver
 
 
 def _tick(idx: int) -> TickResult:
