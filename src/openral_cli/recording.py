@@ -15,7 +15,8 @@ import click
 from PIL import Image
 
 from openral_cli.errors import exit_codes
-from openral_core import RobotEnvironment, ROSConfigError, SimEnvironment
+from openral_core import ObserverConfig, RobotEnvironment, ROSConfigError, SimEnvironment
+from openral_core.environment import THUMBNAILS_OBSERVER
 from openral_hal.manifests import load_robot_manifest
 
 MCAP_OPTION = click.option(
@@ -109,8 +110,11 @@ def build_rosbag(env: RobotEnvironment, path: Path, *, deployment: Path | None) 
 
 
 def with_thumbnails(env: RobotEnvironment, rate_hz: float = 10.0) -> RobotEnvironment:
-    """``env`` with camera thumbnails on (at ``rate_hz`` when it sets none): what views and bags show."""
-    return env if env.thumbnail_hz else env.model_copy(update={"thumbnail_hz": rate_hz})
+    """``env`` with the ``thumbnails`` observer (at ``rate_hz`` when it has none): what views and bags show."""
+    if any(o.id == THUMBNAILS_OBSERVER for o in env.observers):
+        return env
+    entry = ObserverConfig(id=THUMBNAILS_OBSERVER, params={"rate_hz": rate_hz})
+    return env.model_copy(update={"observers": [*env.observers, entry]})
 
 
 def recording_summary(recorder: Any) -> str:

@@ -16,6 +16,8 @@ from openral_core.frames import FrameEncoding
 _ID_PATTERN = r"^[A-Za-z][A-Za-z0-9_\-]*$"
 
 MAX_CAMERA_FPS = 1000.0
+THUMBNAILS_OBSERVER = "thumbnails"
+"""The observer that encodes camera thumbnails once for every viewer (``thumbnail_hz`` is short for it)."""
 """Highest frame or publish rate a sensor may be configured for."""
 
 MAX_IMAGE_SIDE = 16384
@@ -246,13 +248,32 @@ class RobotEnvironment(_Block):
     rate_hz: float = Field(default=30.0, gt=0, le=10_000)
     deadline_overrun_policy: DeadlineOverrunPolicy = DeadlineOverrunPolicy.WARN
     latency_budget_ms: float | None = Field(default=None, gt=0)
-    thumbnail_hz: float = Field(default=0.0, ge=0, le=MAX_CAMERA_FPS)
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
     executor: ExecutorConfig = Field(default_factory=ExecutorConfig)
     """How a chunking skill's chunks are executed (skills with chunk size 1 do not use it)."""
     realtime: RealtimeConfig = Field(default_factory=RealtimeConfig)
     faults: FaultPolicy = Field(default_factory=FaultPolicy)
     observers: list[ObserverConfig] = Field(default_factory=list)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _thumbnail_shorthand(cls, data: Any) -> Any:
+        """``thumbnail_hz: R`` is short for an ``observers`` entry ``{id: thumbnails, params: {rate_hz: R}}``."""
+        if not isinstance(data, dict) or "thumbnail_hz" not in data:
+            return data
+        data = dict(data)
+        rate = data.pop("thumbnail_hz")
+        if isinstance(rate, bool) or not isinstance(rate, int | float) or not 0 <= rate <= MAX_CAMERA_FPS:
+            raise ValueError(
+                f"thumbnail_hz must be a number from 0 to {MAX_CAMERA_FPS:g}, got {rate!r} "
+                "(it is short for observers: [{id: thumbnails, params: {rate_hz: ...}}])"
+            )
+        observers = list(data.get("observers") or [])
+        named = [o.get("id") if isinstance(o, dict) else getattr(o, "id", None) for o in observers]
+        if rate > 0 and THUMBNAILS_OBSERVER not in named:
+            observers.append({"id": THUMBNAILS_OBSERVER, "params": {"rate_hz": float(rate)}})
+            data["observers"] = observers
+        return data
 
     @model_validator(mode="after")
     def _unique_sensor_ids(self) -> Self:

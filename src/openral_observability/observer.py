@@ -19,6 +19,7 @@ the runner calls once when it activates, before the first tick. Observers subcla
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -74,3 +75,11 @@ class ThumbnailSubscriber(Protocol):
 
     def on_thumbnail(self, thumb: Thumbnail) -> None:
         """Take one thumbnail; must not block for long."""
+
+
+@runtime_checkable
+class ThumbnailSource(Protocol):
+    """An observer that makes camera thumbnails; the runner subscribes every :class:`ThumbnailSubscriber` to it."""
+
+    def subscribe(self, sink: Callable[[Thumbnail], None]) -> None:
+        """Also hand every thumbnail to ``sink``; subscribing twice has no effect."""

@@ -43,7 +43,7 @@ from openral_core import (
 )
 from openral_observability import metrics, semconv, trace_id_hex, traceparent
 from openral_observability.deferred import TickTelemetry
-from openral_observability.observer import StartableObserver, TickObserver
+from openral_observability.observer import StartableObserver, ThumbnailSource, ThumbnailSubscriber, TickObserver
 from openral_observability.tick_recorder import TickRecorder
 from openral_runner.clock import Clock, SystemClock
 from openral_runner.gc_policy import BetweenTicksCollector
@@ -147,6 +147,11 @@ class InferenceRunnerBase(ABC):
         for observer in self.observers:
             if isinstance(observer, StartableObserver):
                 observer.start()  # what building them left closed: ports, sessions
+        for source in self.observers:
+            if isinstance(source, ThumbnailSource):
+                for viewer in self.observers:
+                    if isinstance(viewer, ThumbnailSubscriber):
+                        source.subscribe(viewer.on_thumbnail)  # one JPEG encode for every viewer
         self._recorder.activate()
         self._active = True
 

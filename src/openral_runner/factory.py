@@ -105,7 +105,7 @@ def build_runner(
         realtime=env.realtime,
         garbage_collection=env.realtime.garbage_collection,
         sync=env.sync,
-        thumbnail_hz=env.thumbnail_hz,
+        thumbnail_hz=0.0,  # thumbnails are an ``observers:`` entry of the deployment
         executor=env.executor,
         action_names=robot.joint_names,
         fallback_skill=_fallback_skill(env, robot),

@@ -31,7 +31,7 @@ from openral_core import (
 )
 from openral_hal.protocol import HAL
 from openral_observability import metrics, semconv, tracer
-from openral_observability.observer import ThumbnailSubscriber, TickObserver
+from openral_observability.observer import ThumbnailSource, TickObserver
 from openral_rskill.base import RSkillBase
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
@@ -63,9 +63,9 @@ class HardwareRunner(SkillRunnerBase):
         task: Instruction placed in every world state.
         realtime: Real-time knobs applied to the calling thread at activation.
         sync: Cameras read as one set with bounded capture skew each tick.
-        thumbnail_hz: Rate of the small JPEG thumbnails of each camera, encoded once off the tick
-            thread for the dashboard span and every observer that subscribes (the Foxglove view);
-            0 disables them (as it does without cameras).
+        thumbnail_hz: The seed's shorthand for a ``thumbnails`` observer: small JPEG thumbnails of
+            each camera at this rate, encoded once off the tick thread for the dashboard span and
+            every thumbnail subscriber (the Foxglove view); 0 (or no camera) adds none.
         recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
             observer, hears every ``episode_start``/``episode_end`` and is closed with the runner.
         **base_kwargs: ``InferenceRunnerBase`` options (rate, policy, clock, ...).
@@ -96,8 +96,9 @@ class HardwareRunner(SkillRunnerBase):
         if not (math.isfinite(thumbnail_hz) and thumbnail_hz >= 0):
             raise ROSConfigError(f"must be a finite number >= 0, got {thumbnail_hz}", field="thumbnail_hz")
         self.thumbnails = ThumbnailPublisher(thumbnail_hz) if self.sensor_readers and thumbnail_hz > 0 else None
+        """The thumbnails observer the ``thumbnail_hz`` keyword added (``None`` when it added none)."""
         if self.thumbnails is not None:
-            self.observers.append(self.thumbnails)  # fed the frames the skill saw, like any observer
+            self.observers.append(self.thumbnails)
         synced = set(sync.sensors) if sync is not None else set()
         clock_ns = self._clock.now_ns
         self._synced_readers = [
@@ -114,6 +115,11 @@ class HardwareRunner(SkillRunnerBase):
             semconv.ATTR_HAL_ROBOT_MODEL: hal.robot_id,
         }
         self._sensor_attrs = {r.sensor_id: {semconv.ATTR_SENSOR_ID: r.sensor_id} for r in self.sensor_readers}
+        self._component_attrs = {name: {semconv.ATTR_COMPONENT: name} for name in aggregator.components}
+        # What the readers gave this runner: each sensor's latest frame (held, so a stale sensor's
+        # last frame still reaches the skill) and this tick's failed reads, their verdicts.
+        self._frames: dict[str, SensorFrame] = {}
+        self._failures: dict[str, ROSError] = {}
         # Durations measured here are never negative: recorded on the instruments directly.
 
     def activate(self) -> None:
@@ -138,14 +144,9 @@ class HardwareRunner(SkillRunnerBase):
                 reader.open()
                 stack.callback(self._safe_close, f"sensor {reader.sensor_id}", reader.close)
             self._check_stop()
-            if self.thumbnails is not None:
-                self.thumbnails.start()  # stopped by its observer close below
-                for observer in self.observers:
-                    if isinstance(observer, ThumbnailSubscriber):
-                        self.thumbnails.subscribe(observer.on_thumbnail)  # one JPEG encode for every viewer
-            # Closed in reverse: the thumbnail worker (a producer) first, so its last thumbnails
-            # still reach the observers that subscribe to them.
-            for observer in sorted(self.observers, key=lambda o: o is self.thumbnails):
+            # Closed in reverse: thumbnail makers (producers) first, so their last thumbnails still
+            # reach the observers that subscribe to them.
+            for observer in sorted(self.observers, key=lambda o: isinstance(o, ThumbnailSource)):
                 stack.callback(self._safe_close, f"observer {type(observer).__name__}", observer.close)
             super().activate()  # starts the telemetry worker thread
             stack.callback(super().deactivate)
@@ -269,6 +270,8 @@ class HardwareRunner(SkillRunnerBase):
             tick.episode_idx = self._episode_idx
             tick.step_idx = tick_idx - self._episode_start_tick
         t0 = now()
+        failures = self._failures
+        failures.clear()
         for reader in self._free_readers:
             self._read_sensor(reader)
         if self._synced_readers:
@@ -289,10 +292,17 @@ class HardwareRunner(SkillRunnerBase):
         t1 = now()
         telemetry.record(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t_read) * 1e3, self._hal_attrs)
 
-        world = self.aggregator.snapshot(task=self.task, telemetry=telemetry)
+        span = start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+        try:
+            world = self.aggregator.snapshot(self._frames, failures=failures, task=self.task, span=span)
+        finally:
+            span.end()
         tick.world = world
-        # The world state's diagnostics are the one verdict on every component (a reader's own
-        # "stale" included: it was marked on the aggregator).
+        for name, diagnosis in world.diagnostics.items():
+            if diagnosis.age_ms is not None:
+                telemetry.record_ms(semconv.METRIC_WORLD_STATE_STALENESS, diagnosis.age_ms, self._component_attrs[name])
+        # The world state's diagnostics are the one verdict on every component, built from the
+        # readers' own verdicts.
         if self.sensor_readers:
             diagnostics = world.diagnostics
             stale.extend(r.sensor_id for r in self.sensor_readers if diagnostics[r.sensor_id].stale)
@@ -364,7 +374,7 @@ class HardwareRunner(SkillRunnerBase):
                 attrs[semconv.ATTR_SYNC_SKEW_MS] = exc.skew_ms
             span.add_event(semconv.EVENT_SENSOR_SYNC_FAILED, attrs)
             for reader in self._synced_readers:
-                self.aggregator.mark_stale(reader.sensor_id)
+                self._failures[reader.sensor_id] = ROSPerceptionStale(reader.sensor_id, age_ms=None, max_age_ms=None)
                 metrics.add(semconv.METRIC_SENSORS_STALE_READS, 1, {semconv.ATTR_SENSOR_ID: reader.sensor_id})
         else:
             stamps = [frame.stamp_ns for frame in frames.values()]
@@ -380,7 +390,7 @@ class HardwareRunner(SkillRunnerBase):
             span.end()
 
     def _accept_frame(self, frame: SensorFrame) -> None:
-        self.aggregator.update_frame(frame)  # a frame also clears the sensor's error
+        self._frames[frame.sensor_id] = frame
 
     def _read_sensor(self, reader: SensorReader) -> None:
         """Move one reader's latest frame into the world state, or its verdict (stale, failed) onto it."""
@@ -388,10 +398,10 @@ class HardwareRunner(SkillRunnerBase):
         try:
             frame = reader.read_latest()
         except ROSPerceptionStale as exc:
-            self.aggregator.mark_stale(reader.sensor_id, exc.age_ms)
+            self._failures[reader.sensor_id] = exc
             self._on_stale(span, exc)
         except ROSError as exc:
-            self.aggregator.set_error(reader.sensor_id, str(exc))
+            self._failures[reader.sensor_id] = exc
             record_error(span, exc)
         else:
             self._accept_frame(frame)

@@ -1,27 +1,26 @@
-"""``WorldStateAggregator``: the latest joint state and frames, turned into one ``WorldState`` per tick."""
+"""``WorldStateAggregator``: a tick's frames, read verdicts and joint state, turned into one ``WorldState``."""
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
-from opentelemetry import trace
+from opentelemetry.trace import INVALID_SPAN, Span
 from opentelemetry.util.types import Attributes
 
 from openral_core import (
     ComponentDiagnostics,
     JointState,
     ROSConfigError,
+    ROSError,
+    ROSPerceptionStale,
     SensorFrame,
     SensorReaderConfig,
     WorldState,
 )
 from openral_observability import metrics, semconv
-from openral_observability.deferred import TickTelemetry
-from openral_observability.tracing import tracer
 
 JOINT_STATE_COMPONENT = "joint_state"
 """Component name of the robot's joint state in ``WorldState.diagnostics``."""
@@ -41,33 +40,34 @@ class _Component:
 
 
 class WorldStateAggregator:
-    """Holds the freshest joint state and the latest frame of each declared sensor.
+    """Turns the frames and verdicts a runner read this tick, and the freshest joint state, into one ``WorldState``.
 
-    Capture threads call :meth:`update_frame`, the tick thread calls :meth:`update_joint_state`
-    and :meth:`snapshot`; all methods are thread-safe and hold one lock only long enough to
-    swap or copy references, so a snapshot never waits on a capture and never copies pixels.
+    The aggregator holds no frames: the latest-frame slots are the one mailbox, and the runner
+    hands :meth:`snapshot` what it read from them this tick together with each failed read's
+    exception, the reader's verdict. A sensor whose read raised ``ROSPerceptionStale`` is stale
+    (with the age the reader measured); another ``ROSError`` sets the sensor's error for this
+    snapshot. A sensor read without complaint is judged by its frame's age. The joint state is
+    kept across ticks (:meth:`update_joint_state`), thread-safe, newest capture wins.
 
     Freshness is measured from each sample's *capture* stamp (``SensorFrame.stamp_ns``,
-    ``JointState.stamp_ns``) to ``clock()``, never from when it arrived here: a sample is
-    stale when it is missing, older than its ``max_age_ms``, or stamped further than
-    ``max_age_ms`` in the future (a backend stamping on another clock is never "fresh forever").
-    A component with an error set (:meth:`set_error`) is unhealthy until :meth:`clear_error` or,
-    for a sensor, until its next frame arrives. A sensor whose reader judged its latest frame stale
-    (:meth:`mark_stale`) is stale in the next snapshot whatever frame is held: the world state's
-    diagnostics are the one verdict on every component.
+    ``JointState.stamp_ns``) to ``clock()``, never from when it arrived: a sample is stale when it
+    is missing, older than its ``max_age_ms``, or stamped further than ``max_age_ms`` in the future
+    (a backend stamping on another clock is never "fresh forever"). A component with an error set
+    (:meth:`set_error`) is unhealthy until :meth:`clear_error`.
 
-    Telemetry, emitted inside the ``world_state.snapshot`` span, only on transitions:
+    Transitions are reported as events on the span the caller passes (the runner's
+    ``world_state.snapshot`` span, timed by the runner):
 
     - ``openral.event.staleness_latched`` (component, age when known) the first snapshot a
       component is stale after having been fresh. Every component starts out fresh, so a
       sensor that has not delivered by the first snapshot latches once then.
     - ``openral.event.error_latched`` (component, message) the first snapshot that sees an
-      error set; setting it again, or changing its text, emits nothing until it is cleared.
+      error; the same or a changed error emits nothing until it is cleared.
     - Recovery emits no event; the up-down counter ``openral.world_state.components_stale``
       goes +1 when a component becomes unhealthy (stale or in error) and -1 when it is healthy again.
 
-    Every snapshot records each component's age on the ``openral.world_state.staleness_ms``
-    histogram.
+    Each component's age is in its ``ComponentDiagnostics``; the runner records it on the
+    ``openral.world_state.staleness_ms`` histogram.
 
     Args:
         joint_max_age_ms: Largest joint-state age that counts as fresh.
@@ -104,13 +104,9 @@ class WorldStateAggregator:
         self._sensor_ids = frozenset(c.name for c in components[1:])
         self._has_sensors = bool(self._sensor_ids)
         self._clock = clock
-        self._tracer = tracer()  # the API's proxy tracer follows a provider installed later
         self._lock = threading.Lock()
-        self._snapshot_lock = threading.Lock()
         self._joint_state: JointState | None = None
-        self._frames: dict[str, SensorFrame] = {}
         self._errors: dict[str, str] = {}
-        self._marked_stale: dict[str, float | None] = {}
 
     def is_required(self, component: str) -> bool:
         """Whether a stale ``component`` withholds the tick's action."""
@@ -130,33 +126,6 @@ class WorldStateAggregator:
             held = self._joint_state
             if held is None or js.stamp_ns >= held.stamp_ns:
                 self._joint_state = js
-
-    def update_frame(self, frame: SensorFrame) -> None:
-        """Keep ``frame`` (the object itself) as its sensor's latest, unless the one held was captured later.
-
-        Raises:
-            ROSConfigError: ``frame.sensor_id`` is not a declared sensor.
-        """
-        sensor_id = frame.sensor_id
-        if sensor_id not in self._sensor_ids:
-            raise self._unknown(sensor_id, declared=sorted(self._sensor_ids), what="sensor")
-        with self._lock:
-            held = self._frames.get(sensor_id)
-            if held is None or frame.stamp_ns >= held.stamp_ns:
-                self._frames[sensor_id] = frame
-            if self._errors:
-                self._errors.pop(sensor_id, None)
-
-    def mark_stale(self, sensor_id: str, age_ms: float | None = None) -> None:
-        """Have the next snapshot report ``sensor_id`` stale (its reader said so), with ``age_ms`` when known.
-
-        Raises:
-            ROSConfigError: ``sensor_id`` is not a declared sensor.
-        """
-        if sensor_id not in self._sensor_ids:
-            raise self._unknown(sensor_id, declared=sorted(self._sensor_ids), what="sensor")
-        with self._lock:
-            self._marked_stale[sensor_id] = age_ms
 
     def set_error(self, component: str, message: str) -> None:
         """Mark ``component`` unhealthy with ``message`` until :meth:`clear_error`.
@@ -178,62 +147,59 @@ class WorldStateAggregator:
         with self._lock:
             self._errors.pop(component, None)
 
-    def snapshot(self, *, task: str | None = None, telemetry: TickTelemetry | None = None) -> WorldState:
-        """A ``WorldState`` of the latest samples with diagnostics for every declared component.
+    def snapshot(
+        self,
+        frames: Mapping[str, SensorFrame] | None = None,
+        *,
+        failures: Mapping[str, ROSError] | None = None,
+        task: str | None = None,
+        span: Span = INVALID_SPAN,
+    ) -> WorldState:
+        """A ``WorldState`` of ``frames`` and the joint state, with diagnostics for every declared component.
 
-        ``image_frames`` holds the very frame objects passed to :meth:`update_frame` (no copy),
-        only for sensors that delivered one; it is ``None`` when no sensors are declared.
-        ``stamp_ns`` is ``clock()`` read after the samples were taken, so ages are never
-        negative for samples stamped on the same clock.
+        Args:
+            frames: The latest frame of each sensor that has delivered one (the objects themselves
+                reach ``image_frames``, in a new dict: never copied pixels).
+            failures: This tick's failed reads by sensor: ``ROSPerceptionStale`` makes the sensor
+                stale, any other ``ROSError`` its error for this snapshot.
+            task: The instruction the skill is given.
+            span: Where transition events go (the caller's ``world_state.snapshot`` span).
 
-        With ``telemetry`` (a runner's tick), the ``world_state.snapshot`` span and the staleness
-        samples are recorded into it and exported off the calling thread; without it the span is
-        started here, under the current span.
+        ``image_frames`` is ``None`` when no sensors are declared. ``stamp_ns`` is ``clock()`` read
+        after the samples were taken, so ages are never negative on a shared clock.
+
+        Raises:
+            ROSConfigError: ``frames`` or ``failures`` name an undeclared sensor.
         """
-        # The span is started without becoming current: nothing nests under it, and this is
-        # several times cheaper than ``start_as_current_span`` on the tick path. Inside a trace
-        # the sampler dropped (an unsampled tick) it could not be recorded: the enclosing
-        # non-recording span stands in, saving the span id and sampler call.
-        with self._snapshot_lock:
-            span: Any
-            if telemetry is not None:
-                span = telemetry.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+        if frames and not self._sensor_ids.issuperset(frames):
+            raise self._undeclared(frames)
+        if failures and not self._sensor_ids.issuperset(failures):
+            raise self._undeclared(failures)
+        with self._lock:
+            joint_state = self._joint_state
+            errors = dict(self._errors) if self._errors else None
+        now_ns = self._clock()
+        diagnostics: dict[str, ComponentDiagnostics] = {}
+        for component in self._components:
+            failure = None
+            if component.name == JOINT_STATE_COMPONENT:
+                stamp_ns = None if joint_state is None else joint_state.stamp_ns
             else:
-                current = trace.get_current_span()
-                if current.is_recording() or not current.get_span_context().is_valid:
-                    span = self._tracer.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
-                else:
-                    span = current
-            try:
-                with self._lock:
-                    joint_state = self._joint_state
-                    frames = dict(self._frames)
-                    errors = dict(self._errors) if self._errors else None
-                    marked = self._marked_stale
-                    if marked:
-                        self._marked_stale = {}
-                    now_ns = self._clock()
-                diagnostics: dict[str, ComponentDiagnostics] = {}
-                for component in self._components:
-                    if component.name == JOINT_STATE_COMPONENT:
-                        stamp_ns = None if joint_state is None else joint_state.stamp_ns
-                    else:
-                        frame = frames.get(component.name)
-                        stamp_ns = None if frame is None else frame.stamp_ns
-                    diagnostics[component.name] = self._diagnose(
-                        component, stamp_ns, now_ns, errors, span, telemetry=telemetry, marked=marked
-                    )
-                # Plain (validated) construction: pydantic-core checks these flat fields faster than
-                # ``model_construct`` builds them, and nested model instances pass through unvalidated and uncopied.
-                return WorldState(
-                    stamp_ns=now_ns,
-                    joint_state=joint_state,
-                    image_frames=frames if self._has_sensors else None,
-                    diagnostics=diagnostics,
-                    task=task,
-                )
-            finally:
-                span.end()
+                frame = frames.get(component.name) if frames else None
+                stamp_ns = None if frame is None else frame.stamp_ns
+                failure = failures.get(component.name) if failures else None
+            diagnostics[component.name] = self._diagnose(
+                component, stamp_ns, now_ns, errors, failure=failure, span=span
+            )
+        # Plain (validated) construction: pydantic-core checks these flat fields faster than
+        # ``model_construct`` builds them, and nested model instances pass through unvalidated and uncopied.
+        return WorldState(
+            stamp_ns=now_ns,
+            joint_state=joint_state,
+            image_frames=(dict(frames) if frames else {}) if self._has_sensors else None,
+            diagnostics=diagnostics,
+            task=task,
+        )
 
     def _diagnose(
         self,
@@ -241,10 +207,9 @@ class WorldStateAggregator:
         stamp_ns: int | None,
         now_ns: int,
         errors: dict[str, str] | None,
-        span: Any,
         *,
-        telemetry: TickTelemetry | None,
-        marked: dict[str, float | None],
+        failure: ROSError | None,
+        span: Span,
     ) -> ComponentDiagnostics:
         limit = component.max_age_ms
         if stamp_ns is None:
@@ -253,14 +218,12 @@ class WorldStateAggregator:
         else:
             age_ms = (now_ns - stamp_ns) / 1e6
             stale = age_ms > limit or age_ms < -limit
-            if telemetry is None:
-                metrics.record_histogram_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
-            else:
-                telemetry.record_ms(semconv.METRIC_WORLD_STATE_STALENESS, age_ms, component.attributes)
-        if marked and component.name in marked:
-            stale = True
-            age_ms = marked[component.name] if marked[component.name] is not None else age_ms
         error = errors.get(component.name) if errors else None
+        if isinstance(failure, ROSPerceptionStale):
+            stale = True  # the reader's verdict, with the age it measured when it has one
+            age_ms = failure.age_ms if failure.age_ms is not None else age_ms
+        elif failure is not None:
+            error = str(failure)
 
         if stale and not component.stale_latched:
             attributes = dict(component.attributes or {})
@@ -288,6 +251,10 @@ class WorldStateAggregator:
             required=component.required,
             error=error,
         )
+
+    def _undeclared(self, names: Mapping[str, object]) -> ROSConfigError:
+        unknown = sorted(set(names) - self._sensor_ids)[0]
+        return self._unknown(unknown, declared=sorted(self._sensor_ids), what="sensor")
 
     def _check_component(self, component: str) -> None:
         if component != JOINT_STATE_COMPONENT and component not in self._sensor_ids:

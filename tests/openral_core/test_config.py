@@ -116,9 +116,9 @@ def test_model_rule_message_loses_the_pydantic_prefix(tmp_path: Path) -> None:
 
 
 def test_several_errors_mention_the_others(tmp_path: Path) -> None:
-    error = _load_error(tmp_path, "hal:\n  robot_id: so101\nrate_hz: -1\nthumbnail_hz: -1\n")
+    error = _load_error(tmp_path, "hal:\n  robot_id: so101\nrate_hz: -1\nlatency_budget_ms: -1\n")
     assert "also invalid:" in str(error)
-    assert "thumbnail_hz" in str(error)
+    assert "latency_budget_ms" in str(error)
 
 
 def test_bad_yaml(tmp_path: Path) -> None:

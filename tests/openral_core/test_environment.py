@@ -14,6 +14,7 @@ from openral_core import (
     FaultPolicy,
     FrameEncoding,
     HalConfig,
+    ObserverConfig,
     RealtimeConfig,
     RobotEnvironment,
     SafetyConfig,
@@ -197,10 +198,15 @@ def test_rate_is_positive_and_bounded(rate: float) -> None:
         _env(rate_hz=rate)
 
 
-def test_thumbnail_rate_may_be_zero_but_not_negative() -> None:
-    assert _env(thumbnail_hz=0.0).thumbnail_hz == 0.0
-    with pytest.raises(ValidationError, match="thumbnail_hz"):
-        _env(thumbnail_hz=-1.0)
+def test_thumbnail_rate_is_short_for_a_thumbnails_observer() -> None:
+    assert _env(thumbnail_hz=0.0).observers == [], "0 adds no observer"
+    (entry,) = _env(thumbnail_hz=12.5).observers
+    assert (entry.id, entry.params) == ("thumbnails", {"rate_hz": 12.5})
+    explicit = ObserverConfig(id="thumbnails", params={"rate_hz": 3.0})
+    assert _env(thumbnail_hz=12.5, observers=[explicit]).observers == [explicit], "an explicit entry wins"
+    for wrong in (-1.0, float("nan"), 1e300, "fast", True):
+        with pytest.raises(ValidationError, match="thumbnail_hz"):
+            _env(thumbnail_hz=wrong)
 
 
 def test_latency_budget_is_positive() -> None:

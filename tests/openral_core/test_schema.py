@@ -19,7 +19,7 @@ FULL: dict[str, Any] = {
     "rate_hz": 100,
     "deadline_overrun_policy": "drop",
     "latency_budget_ms": 8.5,
-    "thumbnail_hz": 2,
+    "observers": [{"id": "thumbnails", "params": {"rate_hz": 2}}],
     "hal": {"robot_id": "so101_follower", "adapter": "mujoco_twin", "params": {"realtime_factor": 1.0}},
     "vla": {"id": "hello", "accept_licenses": ["Apache-2.0"], "params": {"amplitude_rad": 0.2}},
     "task": {"instruction": "wave", "task_id": "t1"},
@@ -114,7 +114,6 @@ def test_unknown_keys_are_rejected(
     [
         {"rate_hz": 0},
         {"rate_hz": 20_000},
-        {"thumbnail_hz": -1},
         {"deadline_overrun_policy": "explode"},
         {"sensors": [{"sensor_id": "1front"}]},
         {"sensors": [{"sensor_id": "front", "backend": "v4l2 camera"}]},

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import threading
 from collections.abc import Iterator
 
 import numpy as np
@@ -30,6 +31,7 @@ from openral_runner.clock import SystemClock
 from openral_runner.hardware import HardwareRunner
 from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
 from openral_runner.testing import FakeClock, ScriptedReader
+from openral_runner.thumbnails import ThumbnailPublisher
 from openral_world_state import WorldStateAggregator
 
 JOINTS = ["j0", "j1", "j2"]
@@ -854,3 +856,40 @@ def test_an_observer_failing_at_an_episode_boundary_is_detached_and_the_run_goes
     assert broken not in runner.observers
     assert result.n_ticks == 3
     assert len(hal.sent) == 3
+
+
+class ThumbnailViewer(TickObserver):
+    """A viewer that takes thumbnails (a ``ThumbnailSubscriber``), as the Foxglove view does."""
+
+    def __init__(self) -> None:
+        self.thumbs: list[object] = []
+        self.arrived = threading.Event()
+
+    def on_tick(self, tick, world) -> None:
+        return
+
+    def on_thumbnail(self, thumb) -> None:
+        self.thumbs.append(thumb)
+        self.arrived.set()
+
+    def close(self) -> None:
+        return
+
+
+def test_a_thumbnails_observer_entry_feeds_every_viewer_without_runner_special_cases() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("front", clock, width=8, height=6)
+    publisher = ThumbnailPublisher.from_config({"rate_hz": 1000.0, "quality": 50})
+    viewer = ThumbnailViewer()
+    runner, _, _ = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="front")])
+    assert runner.thumbnails is None
+    runner.observers.extend([publisher, viewer])
+    runner.activate()
+    try:
+        runner.run(1)
+        assert viewer.arrived.wait(10), "the viewer was subscribed to the thumbnails observer at activation"
+    finally:
+        runner.deactivate()
+    assert viewer.thumbs[0].sensor_id == "front"  # type: ignore[attr-defined]
+    with pytest.raises(ROSConfigError, match="rate"):
+        ThumbnailPublisher.from_config({"rate": 5})

@@ -50,16 +50,16 @@ def test_offers_are_throttled_per_camera_without_burst_after_a_stall() -> None:
     publisher = ThumbnailPublisher(10.0, clock=clock, sink=lambda _t: None)  # worker not started
     taken = []
     for _ in range(30):  # 30 ticks at 100 Hz = 0.3 s
-        taken.append(publisher.offer(bgr_frame("a", 4, 4)))
+        taken.append(publisher.offer_frame(bgr_frame("a", 4, 4)))
         clock.t += 0.01
     assert sum(taken) == 3
     clock.t += 2.0  # a stall: 20 slots pass
     after = []
     for _ in range(10):
-        after.append(publisher.offer(bgr_frame("a", 4, 4)))
+        after.append(publisher.offer_frame(bgr_frame("a", 4, 4)))
         clock.t += 0.01
     assert sum(after) == 1  # one thumbnail, not a burst of 20
-    assert publisher.offer(bgr_frame("b", 4, 4))  # other cameras have their own schedule
+    assert publisher.offer_frame(bgr_frame("b", 4, 4))  # other cameras have their own schedule
 
 
 def test_worker_encodes_and_delivers_latest() -> None:
@@ -74,7 +74,7 @@ def test_worker_encodes_and_delivers_latest() -> None:
     before = set(threading.enumerate())
     publisher.start()
     try:
-        assert publisher.offer(bgr_frame(width=320, height=240, stamp_ns=42))
+        assert publisher.offer_frame(bgr_frame(width=320, height=240, stamp_ns=42))
         assert done.wait(5.0)
     finally:
         publisher.stop()
@@ -86,7 +86,7 @@ def test_worker_encodes_and_delivers_latest() -> None:
 def test_zero_rate_disables() -> None:
     publisher = ThumbnailPublisher(0.0)
     publisher.start()
-    assert not publisher.offer(bgr_frame(width=4, height=4))
+    assert not publisher.offer_frame(bgr_frame(width=4, height=4))
     publisher.stop()
 
 

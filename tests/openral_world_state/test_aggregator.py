@@ -1,4 +1,4 @@
-"""WorldStateAggregator: freshness from capture stamps, latching telemetry, zero-copy frames, thread safety."""
+"""WorldStateAggregator: freshness from capture stamps, the readers' verdicts, latching telemetry, zero-copy frames."""
 
 from __future__ import annotations
 
@@ -13,8 +13,17 @@ from opentelemetry.sdk.metrics.export import InMemoryMetricReader
 from opentelemetry.sdk.trace import ReadableSpan
 from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
 
-from openral_core import JointState, ROSConfigError, SensorFrame, SensorReaderConfig
-from openral_observability import semconv
+from openral_core import (
+    JointState,
+    ROSConfigError,
+    ROSError,
+    ROSPerceptionStale,
+    ROSRuntimeError,
+    SensorFrame,
+    SensorReaderConfig,
+    WorldState,
+)
+from openral_observability import semconv, tracer
 from openral_world_state import JOINT_STATE_COMPONENT, WorldStateAggregator
 
 MS = 1_000_000
@@ -61,11 +70,49 @@ def _cams(*specs: tuple[str, float, bool]) -> list[SensorReaderConfig]:
     return [SensorReaderConfig(sensor_id=sid, max_age_ms=age, required=req) for sid, age, req in specs]
 
 
-def _aggregator(clock: FakeClock, joint_max_age_ms: float = 100.0) -> WorldStateAggregator:
-    return WorldStateAggregator(
-        joint_max_age_ms=joint_max_age_ms,
-        sensors=_cams(("front", 50.0, True), ("wrist", 200.0, False)),
-        clock=clock,
+class Feed:
+    """Stands in for the runner's sensor phase: the latest frame per sensor, this tick's failed reads.
+
+    Each :meth:`snapshot` runs inside its own ``world_state.snapshot`` span, as the runner's does.
+    """
+
+    def __init__(self, aggregator: WorldStateAggregator) -> None:
+        self.aggregator = aggregator
+        self.frames: dict[str, SensorFrame] = {}
+        self.failures: dict[str, ROSError] = {}
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.aggregator, name)
+
+    def update_frame(self, frame: SensorFrame) -> None:
+        self.frames[frame.sensor_id] = frame
+
+    def mark_stale(self, sensor_id: str, age_ms: float | None = None) -> None:
+        self.failures[sensor_id] = ROSPerceptionStale(sensor_id, age_ms=age_ms, max_age_ms=None)
+
+    def fail(self, sensor_id: str, message: str) -> None:
+        self.failures[sensor_id] = ROSRuntimeError(message)
+
+    def snapshot(self, task: str | None = None) -> WorldState:
+        span = tracer().start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+        try:
+            return self.aggregator.snapshot(self.frames, failures=self.failures, task=task, span=span)
+        finally:
+            span.end()
+            self.failures = {}
+
+
+def _feed(aggregator: WorldStateAggregator) -> Feed:
+    return Feed(aggregator)
+
+
+def _aggregator(clock: FakeClock, joint_max_age_ms: float = 100.0) -> Feed:
+    return Feed(
+        WorldStateAggregator(
+            joint_max_age_ms=joint_max_age_ms,
+            sensors=_cams(("front", 50.0, True), ("wrist", 200.0, False)),
+            clock=clock,
+        )
     )
 
 
@@ -131,7 +178,7 @@ def test_every_declared_component_is_diagnosed_before_any_sample() -> None:
 
 def test_without_sensors_image_frames_is_none() -> None:
     clock = FakeClock()
-    agg = WorldStateAggregator(clock=clock)
+    agg = _feed(WorldStateAggregator(clock=clock))
     agg.update_joint_state(_joints(T0))
     ws = agg.snapshot()
     assert ws.image_frames is None
@@ -199,22 +246,16 @@ def test_sample_goes_stale_as_the_clock_advances() -> None:
     assert agg.snapshot().diagnostics[JOINT_STATE_COMPONENT].stale
 
 
-def test_older_sample_does_not_replace_a_newer_one() -> None:
+def test_an_older_joint_state_does_not_replace_a_newer_one() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    newer = _frame("front", T0, seq=2)
-    agg.update_frame(newer)
-    agg.update_frame(_frame("front", T0 - 5 * MS, seq=1))
     new_js = _joints(T0, 1.0)
     agg.update_joint_state(new_js)
     agg.update_joint_state(_joints(T0 - MS, 2.0))
-    ws = agg.snapshot()
-    assert ws.image_frames is not None
-    assert ws.image_frames["front"] is newer
-    assert ws.joint_state is new_js
-    same_stamp = _frame("front", T0, seq=3)
-    agg.update_frame(same_stamp)
-    assert agg.snapshot().image_frames == {"front": same_stamp}
+    assert agg.snapshot().joint_state is new_js
+    same_stamp = _joints(T0, 3.0)
+    agg.update_joint_state(same_stamp)
+    assert agg.snapshot().joint_state is same_stamp
 
 
 # --- frames ---------------------------------------------------------------------------------------
@@ -269,10 +310,15 @@ def test_snapshot_does_not_alias_internal_state() -> None:
     assert set(first.image_frames) == {"front"}
 
 
-def test_unknown_sensor_frame_is_rejected_naming_the_declared_ones() -> None:
+def test_unknown_sensor_frame_or_failure_is_rejected_naming_the_declared_ones() -> None:
     agg = _aggregator(FakeClock())
+    agg.update_frame(_frame("rear", T0))
     with pytest.raises(ROSConfigError, match="unknown sensor 'rear'; declared: front, wrist"):
-        agg.update_frame(_frame("rear", T0))
+        agg.snapshot()
+    agg.frames.clear()
+    agg.mark_stale("rear")
+    with pytest.raises(ROSConfigError, match="unknown sensor 'rear'"):
+        agg.snapshot()
 
 
 # --- construction ---------------------------------------------------------------------------------
@@ -296,7 +342,7 @@ def test_joint_max_age_must_be_positive(age: float) -> None:
 
 
 def test_joint_state_can_be_optional() -> None:
-    agg = WorldStateAggregator(joint_required=False, clock=FakeClock())
+    agg = _feed(WorldStateAggregator(joint_required=False, clock=FakeClock()))
     ws = agg.snapshot()
     assert ws.diagnostics[JOINT_STATE_COMPONENT].stale
     assert ws.stale_required == []
@@ -312,7 +358,7 @@ def test_error_makes_a_fresh_component_unhealthy_until_cleared() -> None:
     agg.update_frame(_frame("front", T0))
     agg.update_frame(_frame("wrist", T0))
     agg.set_error(JOINT_STATE_COMPONENT, "read_state timed out")
-    agg.set_error("wrist", "USB unplugged")
+    agg.fail("wrist", "USB unplugged")
     ws = agg.snapshot()
     diag = ws.diagnostics[JOINT_STATE_COMPONENT]
     assert not diag.stale
@@ -321,12 +367,15 @@ def test_error_makes_a_fresh_component_unhealthy_until_cleared() -> None:
     assert ws.stale_components == [JOINT_STATE_COMPONENT, "wrist"]
     assert ws.stale_required == [JOINT_STATE_COMPONENT]
     agg.set_error(JOINT_STATE_COMPONENT, "still timing out")
+    agg.fail("wrist", "USB unplugged")
     assert agg.snapshot().diagnostics[JOINT_STATE_COMPONENT].error == "still timing out"
     agg.clear_error(JOINT_STATE_COMPONENT)
     agg.clear_error("front")  # none set: no-op
+    agg.fail("wrist", "USB unplugged")
     ws = agg.snapshot()
     assert ws.diagnostics[JOINT_STATE_COMPONENT].healthy
     assert ws.stale_components == ["wrist"]
+    assert agg.snapshot().stale_components == [], "a sensor's failure is a verdict on one tick's read"
 
 
 def test_error_on_undeclared_component_is_rejected() -> None:
@@ -340,17 +389,9 @@ def test_error_on_undeclared_component_is_rejected() -> None:
 # --- telemetry ------------------------------------------------------------------------------------
 
 
-def test_each_snapshot_is_one_span(spans: InMemorySpanExporter) -> None:
-    agg = _aggregator(FakeClock())
-    agg.snapshot()
-    agg.snapshot()
-    names = [s.name for s in spans.get_finished_spans()]
-    assert names == [semconv.SPAN_WORLD_STATE_SNAPSHOT, semconv.SPAN_WORLD_STATE_SNAPSHOT]
-
-
 def test_staleness_latches_once_per_transition(spans: InMemorySpanExporter) -> None:
     clock = FakeClock()
-    agg = WorldStateAggregator(sensors=_cams(("front", 50.0, True)), clock=clock)
+    agg = _feed(WorldStateAggregator(sensors=_cams(("front", 50.0, True)), clock=clock))
     agg.update_joint_state(_joints(T0))
     agg.snapshot()
     # The camera has not delivered yet: it latches once, the joint state does not.
@@ -383,7 +424,7 @@ def test_staleness_latches_once_per_transition(spans: InMemorySpanExporter) -> N
 
 def test_error_latches_once_until_cleared(spans: InMemorySpanExporter) -> None:
     clock = FakeClock()
-    agg = WorldStateAggregator(clock=clock)
+    agg = _feed(WorldStateAggregator(clock=clock))
     agg.update_joint_state(_joints(T0))
     agg.set_error(JOINT_STATE_COMPONENT, "bus error")
     agg.snapshot()
@@ -409,7 +450,7 @@ def test_components_stale_counter_goes_up_on_latch_and_down_on_recovery(
     metric_reader: InMemoryMetricReader,
 ) -> None:
     clock = FakeClock()
-    agg = WorldStateAggregator(sensors=_cams(("latchcam", 50.0, True)), clock=clock)
+    agg = _feed(WorldStateAggregator(sensors=_cams(("latchcam", 50.0, True)), clock=clock))
     before = _updown(metric_reader)
     agg.snapshot()  # both components missing
     agg.snapshot()
@@ -420,28 +461,17 @@ def test_components_stale_counter_goes_up_on_latch_and_down_on_recovery(
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {}
 
-    agg.set_error("latchcam", "decoder failed")  # fresh but in error: unhealthy, counted once
+    agg.fail("latchcam", "decoder failed")  # fresh but its read failed: unhealthy, counted once
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {"latchcam": 1}
     clock.advance_ms(60)  # now also stale: still one unhealthy component
+    agg.fail("latchcam", "decoder failed")
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {"latchcam": 1}
-    agg.clear_error("latchcam")
     agg.update_frame(_frame("latchcam", clock.now_ns))
     agg.update_joint_state(_joints(clock.now_ns))
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {}
-
-
-def test_staleness_histogram_records_each_component_with_a_sample(metric_reader: InMemoryMetricReader) -> None:
-    clock = FakeClock()
-    agg = WorldStateAggregator(sensors=_cams(("histcam", 50.0, True), ("histcam2", 50.0, True)), clock=clock)
-    agg.update_frame(_frame("histcam", T0))
-    before = _hist_counts(metric_reader)
-    agg.snapshot()
-    agg.snapshot()
-    after = _hist_counts(metric_reader)
-    assert _delta(after, before) == {"histcam": 2}, "only components with a sample have an age to record"
 
 
 # --- threads --------------------------------------------------------------------------------------
@@ -459,7 +489,7 @@ def frequent_thread_switches() -> Iterator[None]:
 
 
 @pytest.mark.usefixtures("frequent_thread_switches")
-def test_concurrent_updates_never_tear_a_snapshot() -> None:
+def test_concurrent_joint_updates_never_tear_a_snapshot() -> None:
     ticks = 0
     lock = threading.Lock()
 
@@ -469,40 +499,25 @@ def test_concurrent_updates_never_tear_a_snapshot() -> None:
             ticks += 1
             return T0 + ticks * 1000
 
-    sensors = ("c0", "c1", "c2")
-    agg = WorldStateAggregator(
-        sensors=[SensorReaderConfig(sensor_id=s, max_age_ms=1e9) for s in sensors], joint_max_age_ms=1e9, clock=clock
-    )
+    agg = WorldStateAggregator(joint_max_age_ms=1e9, clock=clock)
     n = 2_000
-    written_frames: dict[str, set[int]] = {s: set() for s in sensors}
-    written_joints: set[int] = set()
+    written: set[int] = set()
+    keep: list[JointState] = []  # keeps every written object alive so ids stay unique
     errors: list[BaseException] = []
-    start = threading.Barrier(len(sensors) + 2)
-
-    def capture(sensor_id: str) -> None:
-        try:
-            start.wait()
-            for seq in range(n):
-                frame = _frame(sensor_id, clock(), seq=seq)
-                written_frames[sensor_id].add(id(frame))
-                keep.append(frame)
-                agg.update_frame(frame)
-        except BaseException as exc:  # pragma: no cover - reported below
-            errors.append(exc)
+    start = threading.Barrier(3)
 
     def joints() -> None:
         try:
             start.wait()
             for k in range(n):
                 js = _joints(clock(), float(k))
-                written_joints.add(id(js))
+                written.add(id(js))
                 keep.append(js)
                 agg.update_joint_state(js)
         except BaseException as exc:  # pragma: no cover - reported below
             errors.append(exc)
 
-    keep: list[object] = []  # keeps every written object alive so ids stay unique
-    threads = [threading.Thread(target=capture, args=(s,)) for s in sensors] + [threading.Thread(target=joints)]
+    threads = [threading.Thread(target=joints) for _ in range(2)]
     for thread in threads:
         thread.start()
     start.wait()
@@ -512,31 +527,17 @@ def test_concurrent_updates_never_tear_a_snapshot() -> None:
     for thread in threads:
         thread.join()
     snapshots.append(agg.snapshot())
-
     assert errors == []
-    assert len(snapshots) > 1
-    last_seq = dict.fromkeys(sensors, -1)
+    last_stamp = 0
     for ws in snapshots:
-        assert ws.image_frames is not None
-        if ws.joint_state is not None:
-            assert id(ws.joint_state) in written_joints
-            js_diag = ws.diagnostics[JOINT_STATE_COMPONENT]
-            assert js_diag.age_ms == (ws.stamp_ns - ws.joint_state.stamp_ns) / 1e6
-            assert js_diag.age_ms >= 0
-        for sensor_id in sensors:
-            frame = ws.image_frames.get(sensor_id)
-            diag = ws.diagnostics[sensor_id]
-            if frame is None:
-                assert diag.age_ms is None
-                continue
-            assert id(frame) in written_frames[sensor_id]
-            assert diag.age_ms == (ws.stamp_ns - frame.stamp_ns) / 1e6, "diagnostics and frame disagree"
-            assert diag.age_ms >= 0, "snapshot clock read before the frame it holds"
-            assert frame.seq >= last_seq[sensor_id], "a snapshot went back in time"
-            last_seq[sensor_id] = frame.seq
-    final = snapshots[-1]
-    assert final.image_frames is not None
-    assert {s: f.seq for s, f in final.image_frames.items()} == dict.fromkeys(sensors, n - 1)
+        if ws.joint_state is None:
+            continue
+        assert id(ws.joint_state) in written
+        diagnosis = ws.diagnostics[JOINT_STATE_COMPONENT]
+        assert diagnosis.age_ms == (ws.stamp_ns - ws.joint_state.stamp_ns) / 1e6
+        assert diagnosis.age_ms >= 0, "snapshot clock read before the joint state it holds"
+        assert ws.joint_state.stamp_ns >= last_stamp, "a snapshot went back in time"
+        last_stamp = ws.joint_state.stamp_ns
 
 
 def test_a_readers_stale_verdict_holds_for_one_snapshot_over_a_frame_within_its_age() -> None:
@@ -568,22 +569,17 @@ def test_a_stale_mark_without_an_age_keeps_the_measured_one() -> None:
     assert diagnosis.age_ms == pytest.approx(20.0)
 
 
-def test_marking_an_undeclared_sensor_stale_names_the_declared_ones() -> None:
-    agg = _aggregator(FakeClock())
-    with pytest.raises(ROSConfigError, match="front, wrist"):
-        agg.mark_stale("rear")
-    with pytest.raises(ROSConfigError):
-        agg.mark_stale(JOINT_STATE_COMPONENT)
-
-
-def test_a_sensors_next_frame_clears_its_error() -> None:
+def test_a_failed_read_is_the_sensors_error_for_that_snapshot_only() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.set_error("wrist", "USB unplugged")
-    agg.set_error(JOINT_STATE_COMPONENT, "bus error")
-    assert agg.snapshot().diagnostics["wrist"].error == "USB unplugged"
     agg.update_frame(_frame("wrist", T0))
+    agg.fail("wrist", "USB unplugged")
+    agg.set_error(JOINT_STATE_COMPONENT, "bus error")
+    failed = agg.snapshot()
+    assert failed.diagnostics["wrist"].error == "USB unplugged"
+    assert failed.image_frames is not None
+    assert "wrist" in failed.image_frames, "the last frame still reaches the skill"
     ws = agg.snapshot()
     assert ws.diagnostics["wrist"].error is None
     assert ws.diagnostics["wrist"].healthy
-    assert ws.diagnostics[JOINT_STATE_COMPONENT].error == "bus error"  # only the sensor's own frame clears it
+    assert ws.diagnostics[JOINT_STATE_COMPONENT].error == "bus error"  # set_error holds until cleared
