@@ -20,9 +20,11 @@ import numpy as np
 
 from _common import machine_line, run_deployment
 from openral_core import RobotEnvironment
-from openral_runner.backends.gstreamer.objects_detector import ObjectsDetector
-from openral_runner.backends.gstreamer.perception_tee import MotionDetector, SceneChangeDetector
-from openral_runner.perception import PerceptionObserver
+from openral_perception.detectors.motion import MotionDetector
+from openral_perception.detectors.objects import ObjectsDetector
+from openral_perception.detectors.scene_change import SceneChangeDetector
+from openral_perception.frame import DetectorFrame
+from openral_perception.observer import PerceptionObserver
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOYMENTS = ROOT / "deployments"
@@ -50,6 +52,7 @@ def twin_jitter(seconds: float, *, perception: bool) -> tuple[float, float, floa
 
 
 def detector_costs(repeats: int = 50) -> list[tuple[str, float]]:
+    """Each detector's time per frame, on fresh views (so each pays for its grey or colour form as the first would)."""
     rng = np.random.default_rng(0)
     frames = [rng.integers(0, 256, (240, 320, 3), dtype=np.uint8) for _ in range(2)]
     detectors = [
@@ -62,10 +65,10 @@ def detector_costs(repeats: int = 50) -> list[tuple[str, float]]:
     ]
     costs = []
     for name, detector in detectors:
-        detector.detect(frames[0], 320, 240, "bench")
+        detector.detect(DetectorFrame.from_array(frames[0], sensor_id="bench"))
         started = time.perf_counter()
         for i in range(repeats):
-            detector.detect(frames[i % 2], 320, 240, "bench")
+            detector.detect(DetectorFrame.from_array(frames[i % 2], sensor_id="bench"))
         costs.append((name, (time.perf_counter() - started) / repeats * 1e3))
     return costs
 

@@ -44,6 +44,12 @@ HEAVY = [
         "openral_sim.runner",
         "openral_sim.evaluation",
         "openral_remote.codec",
+        "openral_perception",
+        "openral_perception.observer",
+        "openral_perception.detectors.registry",
+        "openral_perception.reward",
+        "openral_runner.perception",
+        "openral_runner.backends.gstreamer.perception_tee",
     ],
 )
 def test_import_loads_no_heavy_library(package: str) -> None:
@@ -80,7 +86,14 @@ sys.meta_path.insert(0, Blocker())
 from openral_core import ROSDependencyMissing
 
 failed = {}
-GROUPS = ("openral.skills", "openral.hals", "openral.sensor_backends", "openral.safety_clients", "openral.sim_envs")
+GROUPS = (
+    "openral.skills",
+    "openral.hals",
+    "openral.sensor_backends",
+    "openral.safety_clients",
+    "openral.sim_envs",
+    "openral.detectors",
+)
 for group in GROUPS:
     for ep in importlib.metadata.entry_points(group=group):
         try:
@@ -103,6 +116,7 @@ NEEDS_A_HEAVY_LIBRARY = {
     "openral.sim_envs:so101": ("mujoco", "twin"),
     "openral.sim_envs:metaworld": ("mujoco", "twin"),
     "openral.sim_envs:pusht": ("cv2", "opencv"),
+    "openral.detectors:objects": ("onnxruntime", "policy"),
 }
 
 

@@ -1,11 +1,10 @@
-"""Fakes for runner tests: a clock that never sleeps, a reader that serves scripted frames, a sink that keeps events."""
+"""Fakes for runner tests: a clock that never sleeps and a reader that serves scripted frames."""
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 
-from openral_core import FrameEncoding, PerceptionEvent, ROSPerceptionStale, ROSRuntimeError, SensorFrame
+from openral_core import FrameEncoding, ROSPerceptionStale, ROSRuntimeError, SensorFrame
 
 
 class FakeClock:
@@ -127,22 +126,3 @@ class ScriptedReader:
             seq=self._seq,
             data=self._pixels,
         )
-
-
-class RecordingEventSink:
-    """A perception :class:`~openral_runner.backends.gstreamer.perception_tee.EventSink` that keeps what it is given.
-
-    ``arrived`` is set by the first event (wait on it instead of sleeping).
-    """
-
-    def __init__(self) -> None:
-        self.events: list[PerceptionEvent] = []
-        self.closed = False
-        self.arrived = threading.Event()
-
-    def publish(self, event: PerceptionEvent) -> None:
-        self.events.append(event)
-        self.arrived.set()
-
-    def close(self) -> None:
-        self.closed = True

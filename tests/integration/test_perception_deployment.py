@@ -29,7 +29,8 @@ def test_events_of_every_detector_reach_a_zenoh_subscriber(tmp_path: Path) -> No
     deployment = yaml.safe_load((ROOT / "deployments" / "so101_twin_perception.yaml").read_text(encoding="utf-8"))
     perception = deployment["observers"][0]["params"]
     perception["zenoh"]["listen"] = [endpoint]
-    perception["objects"]["model"] = str(ROOT / "models" / "cube_detector.onnx")
+    objects = next(d for d in perception["detectors"] if d["kind"] == "objects")
+    objects["params"]["model"] = str(ROOT / "models" / "cube_detector.onnx")
     # What is tested is events, not camera timing: a loaded machine renders late, and the shipped
     # file's 250 ms freshness bound would then (rightly) stop the arm before 240 ticks.
     deployment["sensors"][0]["max_age_ms"] = 5000

@@ -2,8 +2,9 @@
 
 The test writes a package and its ``.dist-info`` (entry points) to a temporary folder, puts it on
 ``PYTHONPATH`` and runs ``openral validate`` and ``openral deploy`` on a deployment that uses only
-its plugins: a robot manifest, a camera backend, a skill, a safety client and a tick observer.
-Nothing in this repository names any of them.
+its plugins: a robot manifest, a camera backend, a skill, a safety client, a tick observer and an
+event detector run by the built-in ``perception`` observer. Nothing in this repository names any
+of them.
 """
 
 from __future__ import annotations
@@ -25,7 +26,9 @@ import json
 import threading
 from pathlib import Path
 
-from openral_core import Action, FrameEncoding, SafetyEnvelope, SensorFrame
+from pydantic import BaseModel
+
+from openral_core import Action, FrameEncoding, ROSConfigError, SafetyEnvelope, SensorFrame
 from openral_core.skills import RSkillInfo
 from openral_rskill.base import RSkillBase
 from openral_runner import LatestFrameSlot, SafetyClient, SlotReader
@@ -101,6 +104,36 @@ class AcmeSafety(SafetyClient):
         return action.model_copy(update={"targets": [[v / 2 for v in row] for row in action.targets]})
 
 
+class AcmeShadeDetector:
+    """Reports the mean grey level of every frame it is shown, and writes the events it made on request."""
+
+    kind = "acme_shade"
+
+    def __init__(self, log):
+        self.log = Path(log)
+
+    @classmethod
+    def from_config(cls, params, *, base_dir=None):
+        extra = sorted(set(params) - {"log"})
+        if extra:
+            raise ROSConfigError(f"unknown key {extra[0]!r}; allowed keys: log", field=extra[0])
+        return cls(params["log"])
+
+    def detect(self, frame):
+        grey = float(frame.grey.mean())
+        seen = {"sensor": frame.sensor_id, "grey": grey, "size": [frame.width, frame.height]}
+        with self.log.open("a") as out:
+            out.write(json.dumps(seen) + "\\n")
+        return AcmeShade(level=grey)
+
+    def summarise(self, metadata):
+        return f"grey {metadata.level:.0f}"
+
+
+class AcmeShade(BaseModel):
+    level: float
+
+
 class AcmeRecorder:
     """Keeps what each tick sent and the grey level the skill saw; writes it on close."""
 
@@ -136,6 +169,9 @@ acme_halver = acme_openral:AcmeSafety
 
 [openral.observers]
 acme_recorder = acme_openral:AcmeRecorder
+
+[openral.detectors]
+acme_shade = acme_openral:AcmeShadeDetector
 """
 
 ROBOT = """
@@ -156,6 +192,10 @@ sensors:
 safety: {{client: acme_halver}}
 observers:
   - {{id: acme_recorder, params: {{path: {record}}}}}
+  - id: perception
+    params:
+      rate_hz: 1000
+      detectors: [{{kind: acme_shade, params: {{log: {shades}}}}}]
 """
 
 
@@ -184,7 +224,8 @@ def _openral(site: Path, *args: str) -> subprocess.CompletedProcess[str]:
 def test_a_separate_distribution_plugs_in_every_door(site: Path, tmp_path: Path) -> None:
     record = tmp_path / "ticks.json"
     deployment = tmp_path / "acme.yaml"
-    deployment.write_text(DEPLOYMENT.format(record=record))
+    shades = tmp_path / "shades.jsonl"
+    deployment.write_text(DEPLOYMENT.format(record=record, shades=shades))
 
     checked = _openral(site, "validate", str(deployment))
     assert checked.returncode == 0, checked.stderr
@@ -200,11 +241,30 @@ def test_a_separate_distribution_plugs_in_every_door(site: Path, tmp_path: Path)
     assert all(r["requested"] == [0.4, 0.4] for r in rows), "the skill's actions"
     assert all(r["sent"] == [0.2, 0.2] for r in rows), "what the safety client let through"
     assert all(r["grey"] == 77 for r in rows), "the camera's pixels reached the skill's world state"
+    seen = [json.loads(line) for line in shades.read_text().splitlines()]
+    assert seen, "the perception observer ran the plugin's detector"
+    assert all(s == {"sensor": "eye", "grey": 77.0, "size": [4, 2]} for s in seen), seen
+
+
+def test_a_plugins_detector_validates_its_own_params_and_an_unknown_kind_lists_the_plugins(
+    site: Path, tmp_path: Path
+) -> None:
+    text = DEPLOYMENT.format(record=tmp_path / "ticks.json", shades=tmp_path / "shades.jsonl")
+    deployment = tmp_path / "acme.yaml"
+    deployment.write_text(text.replace("{log:", "{lgo:"))
+    checked = _openral(site, "validate", str(deployment))
+    assert checked.returncode == 2
+    assert "observers[].params.detectors[0].params.lgo: unknown key 'lgo'" in checked.stderr
+    deployment.write_text(text.replace("kind: acme_shade", "kind: acme_shades"))
+    checked = _openral(site, "validate", str(deployment))
+    assert checked.returncode == 2
+    assert "unknown detector 'acme_shades'" in checked.stderr
+    assert "acme_shade, motion, objects, scene_change" in checked.stderr
 
 
 def test_without_the_distribution_the_names_are_unknown_and_listed(tmp_path: Path) -> None:
     deployment = tmp_path / "acme.yaml"
-    deployment.write_text(DEPLOYMENT.format(record=tmp_path / "ticks.json"))
+    deployment.write_text(DEPLOYMENT.format(record=tmp_path / "ticks.json", shades=tmp_path / "shades.jsonl"))
     checked = _openral(tmp_path / "empty", "validate", str(deployment))
     assert checked.returncode == 2
     assert "error: hal.robot_id: unknown robot 'acme_arm'" in checked.stderr

@@ -161,7 +161,7 @@ def test_validate_refuses_a_model_path_that_cannot_be_a_file(tmp_path: Path) -> 
     path = write(tmp_path, text.replace("../models/cube_detector.onnx", "m" * 300 + ".onnx"))
     out = CliRunner().invoke(cli, ["validate", str(path)])
     assert out.exit_code == 2, out.output
-    assert "objects.model" in out.output
+    assert "detectors[2].params.model" in out.output
     assert "File name too long" in out.output
     assert "unexpected" not in out.output
 

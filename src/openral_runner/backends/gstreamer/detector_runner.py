@@ -1,6 +1,6 @@
 """``DetectorRunner``: a ``kind: detector`` rSkill on a live camera, as a branch of its tee.
 
-The detector is built from the manifest (:mod:`~openral_runner.backends.gstreamer.detector_factory`)
+The detector is built from the manifest (:func:`~openral_perception.detectors.factory.build_manifest_detector`)
 and runs on a branch :class:`~openral_runner.backends.gstreamer.tee_manager.TeeManager` attaches
 behind the tee's leaky queue (``videoconvert`` to BGR, an appsink keeping only the newest frame),
 so however slow it is the policy's leg never waits. Each detection is handed to ``on_detection``.
@@ -14,12 +14,13 @@ from typing import Any
 
 import structlog
 
-from openral_core import ROSRuntimeError
+from openral_core import ROSRuntimeError, SensorFrame
 from openral_core.perception import ObjectsMetadata
+from openral_perception.detectors.factory import build_manifest_detector
+from openral_perception.frame import DetectorFrame
 from openral_rskill.manifest import RSkillManifest
-from openral_runner.backends.gstreamer.detector_factory import build_manifest_detector
-from openral_runner.backends.gstreamer.gst import Gst, bgr_copy
 from openral_runner.backends.gstreamer.pipeline import TEE_NAME
+from openral_runner.backends.gstreamer.sample import AppsinkTap, SampleFrames
 from openral_runner.backends.gstreamer.tee_manager import BranchHandle, TeeManager
 
 _log = structlog.get_logger(__name__)
@@ -54,10 +55,14 @@ class DetectorRunner:
         self.on_detection = on_detection
         self.tees = TeeManager(pipeline, tee_name=tee_name)
         self.frames = 0
-        self.errors = 0
+        self._past_errors = 0
         self._handle: BranchHandle | None = None
-        self._sink: Any = None
-        self._signal: int | None = None
+        self._tap: AppsinkTap | None = None
+
+    @property
+    def errors(self) -> int:
+        """Frames the branch could not read or the detector (or ``on_detection``) failed on."""
+        return self._past_errors + (0 if self._tap is None else self._tap.errors)
 
     def start(self) -> None:
         """Attach the detector's branch. Idempotent."""
@@ -73,31 +78,21 @@ class DetectorRunner:
         if sink is None:
             self.tees.detach(handle)
             raise ROSRuntimeError(f"the detector branch has no appsink {sink_name!r}")
-        self._handle, self._sink = handle, sink
-        self._signal = sink.connect("new-sample", self._on_sample)
+        self._handle = handle
+        self._tap = AppsinkTap(sink, SampleFrames(self.sensor_id), self._on_frame)
 
     def stop(self) -> None:
         """Detach the branch and release the detector. Idempotent."""
-        if self._sink is not None and self._signal is not None:
-            self._sink.disconnect(self._signal)
+        if self._tap is not None:
+            self._tap.detach()
+            self._past_errors += self._tap.errors
         if self._handle is not None:
             self.tees.detach(self._handle)
-        self._handle = self._sink = self._signal = None
+        self._handle = self._tap = None
 
-    def _on_sample(self, sink: Any) -> Any:
-        sample = sink.emit("pull-sample")
-        if sample is None:
-            return Gst.FlowReturn.OK
-        try:
-            frame = bgr_copy(sample)
-            if frame is None:
-                return Gst.FlowReturn.OK
-            self.frames += 1
-            height, width = frame.shape[:2]
-            found = self.detector.detect(frame, width, height, self.sensor_id)
-            if found is not None:
-                self.on_detection(found)
-        except Exception as exc:  # the streaming thread must survive a bad frame or a failing callback
-            self.errors += 1
-            _log.warning("detector branch failed on a frame", sensor=self.sensor_id, error=str(exc))
-        return Gst.FlowReturn.OK
+    def _on_frame(self, frame: SensorFrame) -> None:
+        """One frame of the branch (streaming thread): detect, hand over what was found."""
+        self.frames += 1
+        found = self.detector.detect(DetectorFrame(frame))
+        if isinstance(found, ObjectsMetadata):
+            self.on_detection(found)

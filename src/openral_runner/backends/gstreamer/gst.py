@@ -12,10 +12,6 @@ if the application wrapped an appsink before ``GstApp`` was loaded (``Gst.parse_
 
 from __future__ import annotations
 
-from typing import Any
-
-import numpy as np
-
 from openral_core import ROSConfigError, ROSDependencyMissing
 
 try:
@@ -35,24 +31,4 @@ except ValueError as exc:  # pragma: no cover - gi present, typelibs missing
 
 Gst.init(None)
 
-
-def bgr_copy(sample: Any) -> np.ndarray | None:
-    """A BGR sample's pixels as an ``(H, W, 3)`` array of its own (the buffer goes back to its pool).
-
-    Padded rows are cut to the width. ``None`` when the buffer cannot be mapped.
-    """
-    structure = sample.get_caps().get_structure(0)
-    width, height = structure.get_value("width"), structure.get_value("height")
-    buffer = sample.get_buffer()
-    ok, mapped = buffer.map(Gst.MapFlags.READ)
-    if not ok:
-        return None
-    try:
-        stride = len(mapped.data) // height
-        rows = np.frombuffer(mapped.data, dtype=np.uint8).reshape(height, stride)[:, : width * 3]
-        return rows.reshape(height, width, 3).copy()
-    finally:
-        buffer.unmap(mapped)
-
-
-__all__ = ["GLib", "GObject", "Gst", "GstApp", "GstVideo", "bgr_copy"]
+__all__ = ["GLib", "GObject", "Gst", "GstApp", "GstVideo"]

@@ -16,8 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from openral_core import FrameEncoding, ROSConfigError, SensorReaderConfig
 from openral_core.config import config_error_from_validation
+from openral_perception.params import PerceptionParams
 from openral_runner.backends.gstreamer.pipeline import Codec, PipelineSpec, PixelFormat, Platform, Source
-from openral_runner.perception_params import PerceptionParams
 from openral_runner.sensor_reader import backend_params_field, require_video_file
 
 FORMAT_OF_ENCODING: dict[FrameEncoding, PixelFormat] = {

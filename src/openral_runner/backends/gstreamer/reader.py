@@ -6,20 +6,19 @@ runs :meth:`GStreamerSensorReader._on_new_sample` on the streaming thread. A cal
 than a pull thread: the frame is published the moment the sink has it (no poll interval), and
 there is no extra Python thread to wake, schedule and join.
 
-Capture stamps: the pipeline is forced onto a ``GstSystemClock`` of type ``MONOTONIC``
-(``CLOCK_MONOTONIC``, the clock of ``time.monotonic_ns``), so a buffer's capture time is
-``base_time + running_time(PTS)`` on the very clock staleness is measured with. Live sources
-stamp PTS at capture (``v4l2src`` from the driver's timestamp), so decoding and conversion are
-not counted as freshness. A buffer without PTS is stamped on arrival; a stamp later than the
-arrival (a file decoded ahead of its presentation time) is clamped to the arrival.
-
-Copies: the buffer is mapped and its bytes taken once (the capture copy, needed because the
-GstBuffer returns to its pool); the frame is a numpy view over those bytes with the real row
-stride, so padded rows (e.g. 161 BGR pixels = 483 bytes, padded to 484) come out as exactly
-``width`` pixels without another copy.
+Frames and stamps: :mod:`~openral_runner.backends.gstreamer.sample` turns each sample into a
+frame (one copy, the real row stride) stamped at capture. The pipeline is forced onto a
+``GstSystemClock`` of type ``MONOTONIC`` (``CLOCK_MONOTONIC``, the clock of
+``time.monotonic_ns``), so that stamp is on the very clock staleness is measured with. Live
+sources stamp PTS at capture (``v4l2src`` from the driver's timestamp), so decoding and
+conversion are not counted as freshness.
 
 Formats: the appsink's caps are narrowed to BGR, RGB and GRAY8 (``bgr8``, ``rgb8``, ``mono8``);
 a pipeline whose upstream can only deliver something else is a ``ROSConfigError`` at ``open()``.
+
+The event leg (``enable_event_tee``): its appsink's frames go to a :class:`FrameConsumer` (the
+perception publisher, when ``backend_params.perception`` is set), started and closed with the
+pipeline; the consumer only takes a reference, so the leg never waits on detectors.
 
 Errors: a bus sync handler (called on the posting thread, so no bus thread either) latches an
 ERROR as ``ROSRuntimeError`` naming the element, raised by the next read; a failure while
@@ -32,47 +31,28 @@ from __future__ import annotations
 import re
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
-import numpy as np
 import structlog
 
-from openral_core import (
-    FrameEncoding,
-    ROSConfigError,
-    ROSError,
-    ROSRuntimeError,
-    SensorFrame,
-    SensorReaderConfig,
-)
-from openral_runner.backends.gstreamer.gst import GLib, GObject, Gst, GstApp, GstVideo, bgr_copy
+from openral_core import ROSConfigError, ROSError, ROSRuntimeError, SensorFrame, SensorReaderConfig
+from openral_perception.observer import build_publisher
+from openral_runner.backends.gstreamer.gst import GLib, GObject, Gst, GstApp
 from openral_runner.backends.gstreamer.params import refield, settings_from_config
-from openral_runner.backends.gstreamer.perception_tee import PerceptionEventPublisher
 from openral_runner.backends.gstreamer.pipeline import (
     PipelineSpec,
-    PixelFormat,
     Platform,
     build_pipeline_string,
     detect_platform,
     ensure_appsink_name,
 )
-from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
-from openral_runner.perception import build_publisher
+from openral_runner.backends.gstreamer.sample import CONVERT_HINT, SUPPORTED_FORMATS, AppsinkTap, SampleFrames
+from openral_runner.frame_slot import LatestFrameSlot, SlotReader
 
 _log = structlog.get_logger(__name__)
 
-_ENCODINGS: dict[Any, FrameEncoding] = {
-    GstVideo.VideoFormat.BGR: FrameEncoding.BGR8,
-    GstVideo.VideoFormat.RGB: FrameEncoding.RGB8,
-    GstVideo.VideoFormat.GRAY8: FrameEncoding.MONO8,
-}
-SUPPORTED_FORMATS: tuple[str, ...] = tuple(f.value for f in PixelFormat)
-"""Raw formats the appsink accepts (``BGR`` → ``bgr8``, ``RGB`` → ``rgb8``, ``GRAY8`` → ``mono8``)."""
-
 _SUPPORTED_CAPS = f"video/x-raw,format=(string){{{','.join(SUPPORTED_FORMATS)}}}"
-_CONVERT_HINT = "end the pipeline with '! videoconvert ! video/x-raw,format=BGR ! appsink'"
 _FORMAT_FIELD = re.compile(r"format=\(string\)(\{[^}]*\}|[\w]+)")
 _MISSING_ELEMENT = re.compile(r'no element "([^"]+)"')
 _PACKAGE_HINTS = (
@@ -83,15 +63,17 @@ _PACKAGE_HINTS = (
 _NULL_STATE_TIMEOUT_NS = 5 * Gst.SECOND
 
 
-@dataclass(frozen=True)
-class _Layout:
-    """How one negotiated caps lays pixels out in a buffer."""
+class FrameConsumer(Protocol):
+    """Takes the frames of the event leg's appsink; started when the pipeline starts, closed when it stops."""
 
-    caps: Any
-    encoding: FrameEncoding
-    shape: tuple[int, ...]
-    strides: tuple[int, ...]
-    offset: int
+    def start(self) -> None:
+        """Get ready for frames (open sinks, start a worker)."""
+
+    def submit(self, frame: SensorFrame) -> None:
+        """Take one frame (on the streaming thread): keep a reference, never block."""
+
+    def close(self) -> None:
+        """Let go: the pipeline stopped."""
 
 
 class GStreamerSensorReader(SlotReader):
@@ -107,8 +89,8 @@ class GStreamerSensorReader(SlotReader):
         width / height: Expected frame size; a different delivered size is a reader failure.
             Default: the spec's size.
         frame_id: Optical frame of the camera, copied into every frame.
-        events: Runs event detectors on the frames of the event leg (``enable_event_tee``);
-            started and stopped with the pipeline.
+        events: Takes the frames of the event leg (``enable_event_tee``), e.g. a perception
+            publisher; started and closed with the pipeline.
 
     Raises:
         ROSConfigError: Both or neither of spec and pipeline; a pipeline with no appsink; CSI or
@@ -127,7 +109,7 @@ class GStreamerSensorReader(SlotReader):
         width: int | None = None,
         height: int | None = None,
         frame_id: str | None = None,
-        events: PerceptionEventPublisher | None = None,
+        events: FrameConsumer | None = None,
     ) -> None:
         if (spec is None) == (pipeline is None):
             raise ROSConfigError(
@@ -161,16 +143,14 @@ class GStreamerSensorReader(SlotReader):
         self.width = width
         self.height = height
         self.events = events
-        self._event_sink: Any = None
-        self._event_handler: int | None = None
+        self._frames = SampleFrames(sensor_id, width=width, height=height, frame_id=frame_id)
+        self._event_tap: AppsinkTap | None = None
         self._slot = LatestFrameSlot(sensor_id, default_max_age_ms=default_max_age_ms, clock_ns=time.monotonic_ns)
         self._clock = GObject.new(Gst.SystemClock, clock_type=Gst.ClockType.MONOTONIC)
         self._lock = threading.Lock()
         self._pipeline: Any = None
         self._sink: Any = None
         self._sample_handler: int | None = None
-        self._layout: _Layout | None = None
-        self._seq = 0
         self._eos = False
         self._bus_error: ROSRuntimeError | None = None
 
@@ -193,7 +173,12 @@ class GStreamerSensorReader(SlotReader):
         settings = settings_from_config(config, base_dir=base_dir)
         events = None
         if settings.perception is not None:
-            events = build_publisher(settings.perception, robot_id=robot.robot_id, base_dir=base_dir)
+            events = build_publisher(
+                settings.perception,
+                robot_id=robot.robot_id,
+                base_dir=base_dir,
+                field=f"sensors[{settings.sensor_id}].backend_params.perception",
+            )
         try:
             reader = cls(
                 sensor_id=settings.sensor_id,
@@ -233,9 +218,8 @@ class GStreamerSensorReader(SlotReader):
             if self._pipeline is not None:
                 return
             self._slot.open()
-            self._seq = 0
+            self._frames.reset()
             self._eos = False
-            self._layout = None
             self._bus_error = None
             try:
                 self._start()
@@ -297,9 +281,9 @@ class GStreamerSensorReader(SlotReader):
         pipeline.use_clock(self._clock)
         pipeline.get_bus().set_sync_handler(self._on_bus_message)
         if self.events is not None and self.spec is not None:
-            self._event_sink = pipeline.get_by_name(self.spec.event_appsink_name)
-            self._event_sink.set_property("emit-signals", True)
-            self._event_handler = self._event_sink.connect("new-sample", self._on_event_sample)
+            event_frames = SampleFrames(self.sensor_id, frame_id=self.frame_id)
+            event_sink = pipeline.get_by_name(self.spec.event_appsink_name)
+            self._event_tap = AppsinkTap(event_sink, event_frames, self.events.submit)
             self.events.start()
         if pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
             cause = self._bus_error
@@ -315,11 +299,11 @@ class GStreamerSensorReader(SlotReader):
         pipeline.get_state(_NULL_STATE_TIMEOUT_NS)
         if sink is not None and handler is not None:
             sink.disconnect(handler)
-        if self._event_sink is not None and self._event_handler is not None:
-            self._event_sink.disconnect(self._event_handler)
-        self._event_sink = self._event_handler = None
+        if self._event_tap is not None:
+            self._event_tap.detach()
+            self._event_tap = None
         if self.events is not None:
-            self.events.stop()
+            self.events.close()
         pipeline.get_bus().set_sync_handler(None)
 
     def _restrict_caps(self, sink: Any) -> None:
@@ -331,7 +315,7 @@ class GStreamerSensorReader(SlotReader):
             raise ROSConfigError(
                 f"sensor '{self.sensor_id}': appsink caps '{own.to_string()}' allow none of the formats the "
                 f"reader takes ({', '.join(SUPPORTED_FORMATS)})",
-                hint=_CONVERT_HINT,
+                hint=CONVERT_HINT,
             )
         sink.set_property("caps", wanted)
         upstream = sink.get_static_pad("sink").peer_query_caps(None)
@@ -343,7 +327,7 @@ class GStreamerSensorReader(SlotReader):
         raise ROSConfigError(
             f"sensor '{self.sensor_id}': the pipeline delivers format {named} ({described[:160]}); the reader "
             f"takes {', '.join(SUPPORTED_FORMATS)}",
-            hint=_CONVERT_HINT,
+            hint=CONVERT_HINT,
         )
 
     def _on_bus_message(self, _bus: Any, message: Any) -> Any:
@@ -356,7 +340,7 @@ class GStreamerSensorReader(SlotReader):
             if debug:
                 text += f" [{' '.join(debug.split())}]"
             if debug and "not-negotiated" in debug:
-                text += f" (the appsink takes {', '.join(SUPPORTED_FORMATS)}: {_CONVERT_HINT})"
+                text += f" (the appsink takes {', '.join(SUPPORTED_FORMATS)}: {CONVERT_HINT})"
             self._latch(ROSRuntimeError(text))
         elif kind == Gst.MessageType.EOS:
             self._eos = True
@@ -378,7 +362,7 @@ class GStreamerSensorReader(SlotReader):
             sample = sink.emit("pull-sample")  # the action signal: see ``gst`` on why not ``pull_sample()``
             if sample is None:  # flushing or EOS
                 return Gst.FlowReturn.OK
-            frame = self._frame_from_sample(sample, sink, arrival_ns)
+            frame = self._frames.frame(sample, sink, arrival_ns)
         except ROSError as exc:
             self._latch(exc if isinstance(exc, ROSRuntimeError) else ROSRuntimeError(str(exc)))
             return Gst.FlowReturn.ERROR
@@ -387,78 +371,6 @@ class GStreamerSensorReader(SlotReader):
             return Gst.FlowReturn.ERROR
         self._slot.publish(frame)
         return Gst.FlowReturn.OK
-
-    def _on_event_sample(self, sink: Any) -> Any:
-        """The event leg's frame (BGR, rate-capped by the pipeline) to the detectors' worker; never blocks."""
-        sample = sink.emit("pull-sample")
-        events = self.events
-        if sample is None or events is None:
-            return Gst.FlowReturn.OK
-        arrival_ns = time.monotonic_ns()
-        frame = bgr_copy(sample)
-        if frame is not None:
-            events.submit(frame, self.sensor_id, self._capture_stamp(sample, sample.get_buffer(), sink, arrival_ns))
-        return Gst.FlowReturn.OK
-
-    def _frame_from_sample(self, sample: Any, sink: Any, arrival_ns: int) -> SensorFrame:
-        caps = sample.get_caps()
-        layout = self._layout
-        if layout is None or not caps.is_equal(layout.caps):
-            layout = self._layout = self._layout_for(caps)
-        buffer = sample.get_buffer()
-        strides, offset = layout.strides, layout.offset
-        meta = GstVideo.buffer_get_video_meta(buffer)
-        if meta is not None:  # the producer's own plane layout wins over the caps' default one
-            strides, offset = (int(meta.stride[0]), *layout.strides[1:]), int(meta.offset[0])
-        ok, mapped = buffer.map(Gst.MapFlags.READ)
-        if not ok:
-            raise ROSRuntimeError(f"sensor '{self.sensor_id}': could not map a GStreamer buffer")
-        try:
-            data = mapped.data  # the capture copy: bytes owned by Python
-        finally:
-            buffer.unmap(mapped)
-        pixels = np.ndarray(layout.shape, np.uint8, buffer=data, offset=offset, strides=strides)
-        seq = self._seq
-        self._seq += 1
-        return frame_from_array(
-            self.sensor_id,
-            pixels,
-            stamp_ns=self._capture_stamp(sample, buffer, sink, arrival_ns),
-            seq=seq,
-            encoding=layout.encoding,
-            frame_id=self.frame_id,
-        )
-
-    def _layout_for(self, caps: Any) -> _Layout:
-        info = GstVideo.VideoInfo.new_from_caps(caps)
-        if info is None:
-            raise ROSRuntimeError(f"sensor '{self.sensor_id}': the appsink got non-video caps {caps.to_string()}")
-        encoding = _ENCODINGS.get(info.finfo.format)
-        if encoding is None:
-            raise ROSRuntimeError(
-                f"sensor '{self.sensor_id}': the pipeline delivers format {info.finfo.name}; the reader takes "
-                f"{', '.join(SUPPORTED_FORMATS)} ({_CONVERT_HINT})"
-            )
-        width, height = int(info.width), int(info.height)
-        if (self.width is not None and width != self.width) or (self.height is not None and height != self.height):
-            raise ROSRuntimeError(
-                f"sensor '{self.sensor_id}': the pipeline delivers {width}x{height}, the sensor declares "
-                f"{self.width}x{self.height}"
-            )
-        stride = int(info.stride[0])
-        if encoding is FrameEncoding.MONO8:
-            return _Layout(caps, encoding, (height, width), (stride, 1), int(info.offset[0]))
-        return _Layout(caps, encoding, (height, width, 3), (stride, 3, 1), int(info.offset[0]))
-
-    def _capture_stamp(self, sample: Any, buffer: Any, sink: Any, arrival_ns: int) -> int:
-        """``base_time + running_time(PTS)`` on the monotonic pipeline clock, at most the arrival time."""
-        pts = buffer.pts
-        if pts == Gst.CLOCK_TIME_NONE:
-            return arrival_ns
-        running = sample.get_segment().to_running_time(Gst.Format.TIME, pts)
-        if running == Gst.CLOCK_TIME_NONE:
-            return arrival_ns
-        return min(int(sink.get_base_time()) + int(running), arrival_ns)
 
 
 def _has_element(name: str) -> bool:
@@ -478,4 +390,4 @@ def _parse_error(sensor_id: str, pipeline: str, exc: Any) -> ROSConfigError:
     return ROSConfigError(f"sensor '{sensor_id}': cannot parse pipeline '{pipeline}': {exc.message}", hint=hint)
 
 
-__all__ = ["SUPPORTED_FORMATS", "GStreamerSensorReader"]
+__all__ = ["SUPPORTED_FORMATS", "FrameConsumer", "GStreamerSensorReader"]

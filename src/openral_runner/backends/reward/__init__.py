@@ -1,8 +1,5 @@
-"""The reward monitor: recent frames in a ring, scored for task progress and success by a reward sidecar.
+"""The reward monitor at its specification path; it lives in :mod:`openral_perception.reward` (not capture)."""
 
-``frames`` is pure Python; ``client`` talks to the sidecar over Zenoh (the ``remote`` extra).
-"""
-
-from openral_runner.backends.reward.frames import Frame, RollingFrameBuffer, trend
+from openral_perception.reward.frames import Frame, RollingFrameBuffer, trend
 
 __all__ = ["Frame", "RollingFrameBuffer", "trend"]

@@ -12,7 +12,7 @@ import pytest
 from PIL import Image
 
 from openral_core import ROSDependencyMissing
-from openral_runner.world_cloud_bridge import (
+from openral_perception.world_cloud import (
     WorldCloudBridge,
     crop_points_to_box,
     distance_to_rgb,
@@ -114,7 +114,7 @@ def test_the_bridge_records_a_picture_of_a_published_cloud(telemetry):
     from std_msgs.msg import Header  # noqa: PLC0415
     from tf2_ros import StaticTransformBroadcaster  # noqa: PLC0415
 
-    from openral_runner.world_cloud_bridge import SPAN_WORLD_CLOUD  # noqa: PLC0415
+    from openral_perception.world_cloud import SPAN_WORLD_CLOUD  # noqa: PLC0415
 
     rclpy.init()
     node = rclpy.create_node("world_cloud_test")

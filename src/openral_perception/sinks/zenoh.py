@@ -20,7 +20,8 @@ class ZenohEventSink:
     """Publishes each event on its kind's key; publishers are declared on first use.
 
     The session is opened by :meth:`open` (the publisher opens its sinks when it starts), so
-    building the sink, as ``openral validate`` does, neither listens nor connects.
+    building the sink, as ``openral validate`` does, neither listens nor connects. After
+    :meth:`close` a late event goes nowhere until :meth:`open` is called again.
 
     Args:
         zenoh: The session's settings.
@@ -35,18 +36,20 @@ class ZenohEventSink:
         self._closed = False
 
     def open(self) -> None:
-        """Open the session (listen, connect). Idempotent; building the sink opens nothing.
+        """Open the session (listen, connect), also after :meth:`close`. Idempotent.
 
         Raises:
             ROSConfigError: An endpoint cannot be listened on.
         """
-        if self._session is None and not self._closed:
+        self._closed = False
+        if self._session is None:
             self._session = open_session(self.zenoh)
 
     def publish(self, event: PerceptionEvent) -> None:
-        self.open()
-        if self._session is None:  # closed: a late event goes nowhere
+        if self._closed:  # a late event after close goes nowhere
             return
+        if self._session is None:
+            self.open()
         publisher = self._publishers.get(event.kind)
         if publisher is None:
             publisher = self._publishers[event.kind] = self._session.declare_publisher(
@@ -55,7 +58,7 @@ class ZenohEventSink:
         publisher.put(event.model_dump_json().encode("utf-8"))
 
     def close(self) -> None:
-        """Undeclare the publishers and close the session; the sink stays closed. Idempotent."""
+        """Undeclare the publishers and close the session. Idempotent."""
         self._closed = True
         for publisher in self._publishers.values():
             publisher.undeclare()

@@ -14,7 +14,7 @@ from openral_core import PerceptionEvent, ROSDependencyMissing
 @pytest.mark.skipif(importlib.util.find_spec("rclpy") is not None, reason="rclpy is installed")
 def test_without_ros_2_the_sink_says_how_to_get_it():
     with pytest.raises(ROSDependencyMissing, match="ROS 2"):
-        importlib.import_module("openral_runner.bridges.ros2_perception")
+        importlib.import_module("openral_perception.sinks.ros2")
 
 
 def test_events_arrive_on_their_kinds_topic():
@@ -23,7 +23,7 @@ def test_events_arrive_on_their_kinds_topic():
     from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
     from std_msgs.msg import String  # noqa: PLC0415
 
-    from openral_runner.bridges.ros2_perception import EVENT_QOS, Ros2EventSink  # noqa: PLC0415
+    from openral_perception.sinks.ros2 import EVENT_QOS, Ros2EventSink  # noqa: PLC0415
 
     rclpy.init()
     listener = rclpy.create_node("perception_listener")

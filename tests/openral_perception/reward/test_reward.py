@@ -8,7 +8,7 @@ import time
 import pytest
 
 from openral_core import ROSConfigError, ROSUnavailable
-from openral_runner.backends.reward import Frame, RollingFrameBuffer, trend
+from openral_perception.reward import Frame, RollingFrameBuffer, trend
 
 
 def frame(stamp_s: float, level: int = 0, width: int = 4, height: int = 2) -> Frame:
@@ -42,16 +42,16 @@ def test_trend_is_the_least_squares_slope():
 
 zenoh = pytest.importorskip("zenoh", reason="needs the 'remote' extra")
 
-from openral_remote.config import ZenohConfig  # noqa: E402
-from openral_remote.session import open_session  # noqa: E402
-from openral_remote.testing import free_endpoint  # noqa: E402
-from openral_runner.backends.reward.client import (  # noqa: E402
+from openral_perception.reward.client import (  # noqa: E402
     RewardMonitor,
     RewardTimeout,
     reward_key,
     sidecar_reply,
     sidecar_request,
 )
+from openral_remote.config import ZenohConfig  # noqa: E402
+from openral_remote.session import open_session  # noqa: E402
+from openral_remote.testing import free_endpoint  # noqa: E402
 
 
 class FakeSidecar:
@@ -154,8 +154,8 @@ def test_without_a_sidecar_a_request_fails_fast():
 
 
 def test_a_reward_manifest_builds_its_monitor_and_other_kinds_are_refused():
+    from openral_perception.reward.client import build_reward_monitor  # noqa: PLC0415
     from openral_rskill.manifest import RSkillManifest  # noqa: PLC0415
-    from openral_runner.backends.reward.client import build_reward_monitor  # noqa: PLC0415
 
     manifest = RSkillManifest(
         name="progress_model", kind="reward", license="Apache-2.0", reward={"success_threshold": 0.7, "deadline_s": 1}
