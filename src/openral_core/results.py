@@ -65,19 +65,29 @@ _FAULTS = frozenset(
 
 
 class TickResult(BaseModel):
-    """The record of one tick.
+    """The record of one tick: the one description every renderer of a tick derives from.
 
-    Phase timings are milliseconds on the runner's clock. The sim fields (``step_idx`` ...
-    ``truncated``) are ``None`` on hardware, so ``model_dump(exclude_none=True)`` of a
-    hardware tick has the original (v1) shape.
+    The runner builds it once per tick (``TickContext``); the tick span's attributes, the Foxglove
+    message and its JSON Schema, the ROS 2 bag record and the dataset's ``openral.*`` columns are
+    rendered from its fields, with the telemetry name of each field in
+    ``openral_observability.semconv.TICK_ATTRIBUTES``. A field added here reaches the Foxglove
+    view and the bag record with no other edit.
+
+    Phase timings are milliseconds on the runner's clock. The optional fields are ``None`` when
+    they do not apply, so ``model_dump(exclude_none=True)`` carries only what the tick had:
+    ``episode_idx`` and ``step_idx`` are set while an episode is open (recorded on hardware as in
+    simulation); ``reward``, ``terminated`` and ``truncated`` come from a simulator's step.
 
     Attributes:
         start_ns: Tick start on the runner clock, in nanoseconds.
         lateness_ms: How far past the tick's deadline the action was ready (0 if on time).
+        deadline_missed: ``lateness_ms`` is above 0.
         action_applied: The action reached ``HAL.send_action``.
         withheld_reason: Why it did not (see :class:`WithheldReason`), ``None`` when applied.
         requested_action / sent_action: Row 0 before and after the safety client, when they differ
             the safety client clamped.
+        trace_context: The tick span's W3C ``traceparent``, ``None`` when the tick was not traced.
+        step_idx: The tick's step within the open episode, from 0.
     """
 
     model_config = ConfigDict(extra="forbid", ser_json_inf_nan="constants")
@@ -114,15 +124,17 @@ class TickResult(BaseModel):
         sixth of the cost of validated construction, on a path taken every tick. Input from
         outside (a file, a network peer) goes through ``TickResult(...)`` or ``model_validate``.
         """
-        result = cls.__new__(cls)
-        object.__setattr__(result, "__dict__", values)
-        object.__setattr__(result, "__pydantic_fields_set__", set(_ALL_TICK_FIELDS))
-        object.__setattr__(result, "__pydantic_extra__", None)
-        object.__setattr__(result, "__pydantic_private__", None)
+        result = _new(cls)
+        _set(result, "__dict__", values)
+        _set(result, "__pydantic_fields_set__", set(_ALL_TICK_FIELDS))
+        _set(result, "__pydantic_extra__", None)
+        _set(result, "__pydantic_private__", None)
         return result
 
 
 _ALL_TICK_FIELDS = frozenset(TickResult.model_fields)
+_new = object.__new__
+_set = object.__setattr__
 
 
 class RunResult(BaseModel):

@@ -10,6 +10,11 @@ withheld, the target it kept holding); ``openral.*`` columns keep what really ha
 stamp, lateness, requested action, why an action was withheld, each camera's capture stamp,
 sequence number and age, the tick's trace and span id).
 
+A deployment lists it as the ``lerobot_dataset`` entry of its ``observers:`` block
+(:meth:`RolloutRecorder.from_config`, params :class:`LeRobotDatasetParams`): building it checks the
+parameters and opens nothing; :meth:`RolloutRecorder.start` (the runner calls it at activation)
+opens the dataset folder.
+
 The first failure to write (a full or read-only disk, an encoder that died) stops the recording:
 the episode under way is discarded, the committed ones stay as they are, nothing more is
 recorded, :attr:`RolloutRecorder.failure` says why and ``on_failure`` is called (the CLI stops the
@@ -20,18 +25,36 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable, Sequence
-from typing import Any, Self
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, Final, Literal, Self
 
 import structlog
+from pydantic import BaseModel, ConfigDict, Field
 
-from openral_core import ROSRuntimeError, TickResult, WorldState
+from openral_core import RobotEnvironment, RobotManifest, ROSConfigError, ROSRuntimeError, TickResult, WorldState
+from openral_core.config import validate_model
+from openral_core.config_files import resolve_user_path
 from openral_dataset import schema
-from openral_dataset.writer import EpisodeSummary, LeRobotDatasetSink
+from openral_dataset.episode import EpisodeSummary
+from openral_dataset.writer import LeRobotDatasetSink
 from openral_observability import metrics, semconv
 from openral_observability.queued_observer import QueuedObserver
 
 _log = structlog.get_logger(__name__)
+
+_MIRRORED: Final = {tick_column.tick_field for tick_column in schema.TICK_COLUMNS}
+_ROOT_FIELD: Final = "observers[].params.root"
+
+
+class LeRobotDatasetParams(BaseModel):
+    """Parameters of the ``lerobot_dataset`` observer in a deployment's ``observers:`` block."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    root: Path = Field(description="The dataset folder (relative to the deployment file's folder); created at start.")
+    resume: bool = Field(default=False, description="Add episodes to the dataset already there.")
+    vcodec: Literal["libsvtav1", "h264"] = Field(default="libsvtav1", description="Video codec of the cameras.")
 
 
 class RolloutRecorder(QueuedObserver):
@@ -65,7 +88,55 @@ class RolloutRecorder(QueuedObserver):
         self._ends_done = 0
         super().__init__(name="openral-recorder", max_queue=max_queue)
 
-    # -- the seed's names ------------------------------------------------------------------
+    @classmethod
+    def from_config(
+        cls,
+        params: Mapping[str, Any],
+        *,
+        robot: RobotManifest,
+        env: RobotEnvironment,
+        base_dir: Path | None = None,
+    ) -> RolloutRecorder:
+        """Plugin constructor (observer ``lerobot_dataset``): ``params`` are :class:`LeRobotDatasetParams`.
+
+        Records ``robot``'s joints and one video per sensor of ``env`` at the tick rate. Opens
+        nothing: the dataset folder is opened (created, or checked and resumed) by :meth:`start`.
+
+        Raises:
+            ROSConfigError: A wrong parameter (named with the allowed keys); a tick rate that is not
+                a whole number (a dataset's fps is); a sensor id that cannot name a video folder.
+        """
+        config = validate_model(LeRobotDatasetParams, dict(params), field_prefix="observers[].params")
+        if not math.isclose(env.rate_hz, round(env.rate_hz)):
+            raise ROSConfigError(
+                f"a dataset records whole frames per second; the tick rate is {env.rate_hz:g} Hz",
+                field="rate_hz",
+                hint="use a whole number of Hz to record",
+            )
+        sink = LeRobotDatasetSink(
+            resolve_user_path(config.root, base_dir, field=_ROOT_FIELD),
+            fps=round(env.rate_hz),
+            robot_type=robot.robot_id,
+            joint_names=robot.joint_names,
+            cameras=[schema.CameraSpec(s.sensor_id, s.width or 0, s.height or 0) for s in env.sensors],
+            vcodec=config.vcodec,
+            resume=config.resume,
+            field=_ROOT_FIELD,
+            defer_open=True,
+        )
+        return cls(sink, joint_names=robot.joint_names)
+
+    def start(self) -> None:
+        """Open the dataset folder (the runner calls this at activation, before the first tick). Idempotent.
+
+        A recorder given a sink that is already open has nothing to do.
+
+        Raises:
+            ROSConfigError: What :meth:`LeRobotDatasetSink.open` raises: a folder holding other files,
+                a dataset there without ``resume`` or one that cannot be resumed, a folder that
+                cannot be written.
+        """
+        self.sink.open()
 
     def finalize(self) -> None:
         """Write what is queued, commit or discard the open episode, and close the dataset."""
@@ -159,18 +230,12 @@ class RolloutRecorder(QueuedObserver):
             self._held = list(tick.sent_action)
         action = self._held if self._held is not None else self._hold_default(state)
         trace_id, span_id = _ids(tick.trace_context)
-        row: dict[str, Any] = {
-            schema.STATE: state,
-            schema.ACTION: action,
-            schema.TICK_IDX: tick.tick_idx,
-            schema.TICK_START_NS: tick.start_ns,
-            schema.LATENESS_MS: tick.lateness_ms,
-            schema.ACTION_APPLIED: tick.action_applied,
-            schema.WITHHELD_REASON: None if tick.withheld_reason is None else str(tick.withheld_reason),
-            schema.REQUESTED_ACTION: tick.requested_action or [math.nan] * len(self.sink.action_names),
-            schema.TRACE_ID: trace_id,
-            schema.SPAN_ID: span_id,
-        }
+        mirrored = tick.model_dump(mode="json", include=_MIRRORED)
+        row: dict[str, Any] = {schema.STATE: state, schema.ACTION: action}
+        for tick_column in schema.TICK_COLUMNS:
+            row[tick_column.column] = mirrored[tick_column.tick_field]  # None: the column's absent value
+        row[schema.TRACE_ID] = trace_id
+        row[schema.SPAN_ID] = span_id
         if self.sink.environment_state_names and world is not None and world.privileged is not None:
             row[schema.ENVIRONMENT_STATE] = world.privileged.get("environment_state")
         frames = dict(world.image_frames or {}) if world is not None else {}

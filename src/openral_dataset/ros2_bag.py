@@ -9,7 +9,9 @@ A tick observer. Message definitions and CDR serialisation come from the ``rosba
 - ``/camera/<sensor_id>/compressed`` (``sensor_msgs/msg/CompressedImage``): the runner's JPEG
   thumbnails (subscribed, so a frame is encoded once for every viewer).
 - ``/openral/tick`` and ``/openral/episode`` (``std_msgs/msg/String``, JSON): each tick's record
-  (timings, lateness, why an action was withheld, trace context) and each episode boundary.
+  (its ``TickResult`` fields that have a value: timings, lateness, why an action was withheld,
+  trace context, episode and step, a simulator's reward; the actions and the start are on their
+  own topics and in the log time) and each episode boundary.
 
 The deployment file rides along as an attachment. Stamps are wall-clock nanoseconds: monotonic
 stamps plus one offset taken when the bag opens, so intervals stay exact. A bag cut short by a
@@ -256,29 +258,13 @@ class Ros2BagWriter(QueuedObserver):
         return self._store.types[STRING](data=json.dumps(record, allow_nan=False, default=str))
 
 
+NOT_IN_TICK_RECORD: Final = {"start_ns", "requested_action", "sent_action"}
+"""``TickResult`` fields the tick record leaves out: the start is the log time, the actions have their own topics."""
+
+
 def _tick_record(tick: TickResult) -> dict[str, Any]:
-    record = tick.model_dump(
-        mode="json",
-        include={
-            "tick_idx",
-            "tick_ms",
-            "sensors_ms",
-            "world_state_ms",
-            "inference_ms",
-            "safety_ms",
-            "hal_ms",
-            "action_applied",
-            "withheld_reason",
-            "deadline_missed",
-            "lateness_ms",
-            "stale_sensors",
-            "safety_violations",
-            "trace_context",
-            "episode_idx",
-            "step_idx",
-        },
-    )
-    return {k: v for k, v in record.items() if v is not None}
+    """The record on ``/openral/tick``: each ``TickResult`` field with a value, less :data:`NOT_IN_TICK_RECORD`."""
+    return tick.model_dump(mode="json", exclude=NOT_IN_TICK_RECORD, exclude_none=True)
 
 
 def _check_target(path: Path, *, overwrite: bool, field: str) -> None:

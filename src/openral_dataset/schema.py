@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Any, Final, NamedTuple
 
 from openral_core import ROSDependencyMissing
 
@@ -34,6 +34,28 @@ WITHHELD_REASON: Final = "openral.withheld_reason"
 REQUESTED_ACTION: Final = "openral.requested_action"
 TRACE_ID: Final = "openral.trace_id"
 SPAN_ID: Final = "openral.span_id"
+ACTIONS: Final = "actions"
+"""The dtype of a :data:`TICK_COLUMNS` column holding one float32 per action name."""
+
+
+class TickColumn(NamedTuple):
+    """A data column that records one ``TickResult`` field as it is (``None``: the column's absent value)."""
+
+    tick_field: str
+    column: str
+    dtype: str
+
+
+TICK_COLUMNS: Final = (
+    TickColumn("tick_idx", TICK_IDX, "int64"),
+    TickColumn("start_ns", TICK_START_NS, "int64"),
+    TickColumn("lateness_ms", LATENESS_MS, "float32"),
+    TickColumn("action_applied", ACTION_APPLIED, "bool"),
+    TickColumn("withheld_reason", WITHHELD_REASON, "string"),
+    TickColumn("requested_action", REQUESTED_ACTION, ACTIONS),
+)
+"""The ``openral.*`` columns that mirror ``TickResult`` fields, in column order; the trace and span id
+(:data:`TRACE_ID`, :data:`SPAN_ID`) follow them, taken from its ``trace_context``."""
 
 _SCALARS: Final = {"int64": pa.int64(), "float32": pa.float32(), "bool": pa.bool_(), "string": pa.string()}
 _ABSENT: Final[dict[str, Any]] = {"int64": -1, "float32": float("nan"), "bool": False, "string": ""}
@@ -104,12 +126,11 @@ def features(
                 "has_audio": False,
             },
         }
-    out[TICK_IDX] = _scalar("int64")
-    out[TICK_START_NS] = _scalar("int64")
-    out[LATENESS_MS] = _scalar("float32")
-    out[ACTION_APPLIED] = _scalar("bool")
-    out[WITHHELD_REASON] = _scalar("string")
-    out[REQUESTED_ACTION] = {"dtype": "float32", "shape": [len(actions)], "names": actions}
+    for tick_column in TICK_COLUMNS:
+        if tick_column.dtype == ACTIONS:
+            out[tick_column.column] = {"dtype": "float32", "shape": [len(actions)], "names": actions}
+        else:
+            out[tick_column.column] = _scalar(tick_column.dtype)
     out[TRACE_ID] = _scalar("string")
     out[SPAN_ID] = _scalar("string")
     for cam in cameras:

@@ -12,6 +12,8 @@ from typing import Any, Final
 
 import numpy as np
 
+from openral_core import SensorFrame
+
 QUANTILES: Final = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 STAT_NAMES: Final = ("min", "max", "mean", "std", "count", *QUANTILES)
 IMAGE_SAMPLE_FRAMES: Final = 32
@@ -44,6 +46,33 @@ def vector_stats(values: np.ndarray) -> dict[str, np.ndarray]:
             out[name][column] = np.quantile(finite, q)
     out["count"] = np.array([len(data)])
     return out
+
+
+class FrameSample:
+    """A camera's frames for its episode statistics: every n-th frame, every ``IMAGE_SAMPLE_STRIDE``-th pixel.
+
+    n starts at 1 and doubles (dropping every other frame kept) whenever :data:`IMAGE_SAMPLE_FRAMES`
+    twice over are held, so an episode of any length keeps between that many and twice as many.
+    """
+
+    def __init__(self) -> None:
+        self.frames: list[np.ndarray] = []
+        """The sampled ``[h, w, 3]`` uint8 RGB copies, as the video decodes them."""
+        self._stride = 1
+
+    def add(self, frame: SensorFrame, frame_index: int) -> None:
+        """Keep ``frame`` (row ``frame_index`` of the episode) if it falls on the stride.
+
+        Raises:
+            ValueError: The frame has no 8-bit colour view (see :meth:`SensorFrame.as_rgb`).
+        """
+        if frame_index % self._stride:
+            return
+        step = IMAGE_SAMPLE_STRIDE
+        self.frames.append(np.ascontiguousarray(frame.as_rgb()[::step, ::step]))
+        if len(self.frames) >= 2 * IMAGE_SAMPLE_FRAMES:
+            del self.frames[1::2]
+            self._stride *= 2
 
 
 def image_stats(frames: Sequence[np.ndarray], total_frames: int) -> dict[str, np.ndarray]:

@@ -1,7 +1,8 @@
 """Every span, attribute, event and metric name openral emits, in one table.
 
-Legacy prefixes (``rskill.*``, ``skill.*``, ``safety.*``) are kept verbatim; newer layers
-use ``openral.<layer>.*``. Durations are histograms in milliseconds; counters count events.
+The names the spec gives (``rskill.*``, ``skill.*``, ``safety.*``) are kept as it gives them;
+every other name is ``openral.<layer>.*``. Durations are histograms in milliseconds; counters
+count events. :data:`TICK_ATTRIBUTES` says which ``TickResult`` field each tick attribute renders.
 
 The span tree of one tick::
 
@@ -17,6 +18,8 @@ The span tree of one tick::
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from types import MappingProxyType
 from typing import Final
 
 TRACER_NAME: Final = "openral"
@@ -30,8 +33,7 @@ SPAN_HAL_READ_STATE: Final = "hal.read_state"
 SPAN_WORLD_STATE_SNAPSHOT: Final = "world_state.snapshot"
 SPAN_SKILL_INFERENCE: Final = "skill.chunk_inference"
 SPAN_SKILL_EXECUTE: Final = "rskill.execute"
-"""Alias of the inference phase used by the ROS-side action server; the in-process runner emits
-:data:`SPAN_SKILL_INFERENCE`, and a query for either name finds the skill's work."""
+"""The spec's name for a skill's execution; the runner emits :data:`SPAN_SKILL_INFERENCE` for it."""
 SPAN_SAFETY_CHECK: Final = "safety.check"
 SPAN_HAL_SEND_ACTION: Final = "hal.send_action"
 SPAN_HAL_ESTOP: Final = "hal.estop"
@@ -57,6 +59,34 @@ ATTR_EPISODE_IDX: Final = "skill.episode_idx"
 ATTR_REWARD: Final = "skill.reward"
 ATTR_TERMINATED: Final = "skill.terminated"
 ATTR_TRUNCATED: Final = "skill.truncated"
+
+TICK_ATTRIBUTES: Final[Mapping[str, str]] = MappingProxyType(
+    {
+        "tick_idx": ATTR_TICK_IDX,
+        "tick_ms": ATTR_TICK_MS,
+        "sensors_ms": ATTR_SENSORS_MS,
+        "world_state_ms": ATTR_WORLD_STATE_MS,
+        "inference_ms": ATTR_INFERENCE_MS,
+        "safety_ms": ATTR_SAFETY_MS,
+        "hal_ms": ATTR_HAL_MS,
+        "action_applied": ATTR_ACTION_APPLIED,
+        "withheld_reason": ATTR_WITHHELD_REASON,
+        "safety_violations": ATTR_SAFETY_VIOLATIONS,
+        "lateness_ms": ATTR_LATENESS_MS,
+        "step_idx": ATTR_STEP_IDX,
+        "episode_idx": ATTR_EPISODE_IDX,
+        "reward": ATTR_REWARD,
+        "terminated": ATTR_TERMINATED,
+        "truncated": ATTR_TRUNCATED,
+    }
+)
+"""``TickResult`` field → its ``rskill.tick`` span attribute: the one place a tick field's telemetry name is given.
+
+A field absent here stays off the span (``start_ns`` and ``trace_context`` are the span's own
+start and context; the actions, stale sensors and the deadline flag are carried by the safety and
+sensor spans and by the lateness attribute). How a value is rendered follows from the field's type
+(:mod:`openral_runner.tick_span`): a list as its length, an optional field only when set.
+"""
 
 # Other attributes
 ATTR_SENSOR_ID: Final = "openral.sensor.id"

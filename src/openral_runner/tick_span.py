@@ -1,44 +1,65 @@
-"""The attributes of a recorded ``rskill.tick`` span, from the tick's result."""
+"""The attributes of a recorded ``rskill.tick`` span, rendered from the tick's result.
+
+Which fields reach the span, and under which names, is :data:`openral_observability.semconv.TICK_ATTRIBUTES`;
+how each is rendered follows from its ``TickResult`` type, worked out once at import:
+
+- a list becomes its length (``skill.safety_violations`` counts the violations);
+- an optional field (default ``None``) is set only when the tick has a value, so a zero reward is
+  kept and an absent one is not;
+- ``lateness_ms`` is set only when the deadline was missed;
+- every other field is always set.
+"""
 
 from __future__ import annotations
 
-from typing import Any, Final
+from typing import Any, Final, get_origin
 
 from openral_core import TickResult
 from openral_observability import semconv
 
-_OPTIONAL: Final = (
-    ("step_idx", semconv.ATTR_STEP_IDX),
-    ("episode_idx", semconv.ATTR_EPISODE_IDX),
-    ("reward", semconv.ATTR_REWARD),
-    ("terminated", semconv.ATTR_TERMINATED),
-    ("truncated", semconv.ATTR_TRUNCATED),
-)
+_LATE_ONLY: Final = "lateness_ms"
+
+_Pairs = tuple[tuple[str, str], ...]
+
+
+def _rendering() -> tuple[_Pairs, _Pairs, _Pairs]:
+    """The ``(field, attribute)`` pairs of :data:`semconv.TICK_ATTRIBUTES` by rendering: always, counted, when set."""
+    always: list[tuple[str, str]] = []
+    counted: list[tuple[str, str]] = []
+    when_set: list[tuple[str, str]] = []
+    for name, attribute in semconv.TICK_ATTRIBUTES.items():
+        if name == _LATE_ONLY:
+            continue
+        field = TickResult.model_fields[name]
+        if get_origin(field.annotation) is list:
+            counted.append((name, attribute))
+        elif field.default is None:
+            when_set.append((name, attribute))
+        else:
+            always.append((name, attribute))
+    return tuple(always), tuple(counted), tuple(when_set)
+
+
+_ALWAYS, _COUNTED, _WHEN_SET = _rendering()
+_LATENESS: Final = semconv.TICK_ATTRIBUTES[_LATE_ONLY]
 
 
 def tick_span_attributes(result: TickResult, base: dict[str, Any]) -> dict[str, Any]:
     """Per-phase timings and the tick's outcome, on top of ``base`` (the runner's metric labels).
 
-    Returns a new dict each call: the tick span keeps it.
+    Returns a new dict each call: the tick span keeps it. Reads the field values from the
+    result's ``__dict__`` (a dictionary lookup, cheaper than a model attribute on the tick thread).
     """
-    attributes: dict[str, Any] = {
-        **base,
-        semconv.ATTR_TICK_IDX: result.tick_idx,
-        semconv.ATTR_TICK_MS: result.tick_ms,
-        semconv.ATTR_SENSORS_MS: result.sensors_ms,
-        semconv.ATTR_WORLD_STATE_MS: result.world_state_ms,
-        semconv.ATTR_INFERENCE_MS: result.inference_ms,
-        semconv.ATTR_SAFETY_MS: result.safety_ms,
-        semconv.ATTR_HAL_MS: result.hal_ms,
-        semconv.ATTR_ACTION_APPLIED: result.action_applied,
-        semconv.ATTR_SAFETY_VIOLATIONS: len(result.safety_violations),
-    }
-    if result.withheld_reason is not None:
-        attributes[semconv.ATTR_WITHHELD_REASON] = result.withheld_reason
-    if result.deadline_missed:
-        attributes[semconv.ATTR_LATENESS_MS] = result.lateness_ms
-    for name, attr in _OPTIONAL:
-        value = getattr(result, name)
+    values = result.__dict__
+    attributes = {**base}
+    for name, attribute in _ALWAYS:
+        attributes[attribute] = values[name]
+    for name, attribute in _COUNTED:
+        attributes[attribute] = len(values[name])
+    for name, attribute in _WHEN_SET:
+        value = values[name]
         if value is not None:
-            attributes[attr] = value
+            attributes[attribute] = value
+    if values["deadline_missed"]:
+        attributes[_LATENESS] = values[_LATE_ONLY]
     return attributes

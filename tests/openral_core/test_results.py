@@ -1,4 +1,4 @@
-"""TickResult and RunResult: round trips, the hardware (v1) shape, and non-finite actions."""
+"""TickResult and RunResult: round trips, only what applies in a dump without None, and non-finite actions."""
 
 from __future__ import annotations
 
@@ -90,7 +90,7 @@ def test_run_result_round_trips(run: RunResult) -> None:
     assert RunResult.model_validate(run.model_dump()) == run
 
 
-def test_hardware_tick_has_the_v1_shape() -> None:
+def test_a_hardware_tick_outside_an_episode_dumps_no_optional_field() -> None:
     tick = TickResult(tick_idx=3, tick_ms=2.0, action_applied=True, requested_action=[0.1], sent_action=[0.1])
     dumped = tick.model_dump(exclude_none=True)
     assert not SIM_FIELDS & set(dumped), f"sim fields leaked into a hardware tick: {SIM_FIELDS & set(dumped)}"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import av
@@ -10,13 +11,24 @@ import pyarrow.parquet as pq
 import pytest
 from structlog.testing import capture_logs
 
-from openral_core import FrameEncoding, ROSConfigError, ROSRuntimeError, SensorFrame, SensorReaderConfig
+from openral_core import (
+    FrameEncoding,
+    JointState,
+    RobotEnvironment,
+    ROSConfigError,
+    ROSRuntimeError,
+    SensorFrame,
+    SensorReaderConfig,
+    TickResult,
+    WorldState,
+)
 from openral_dataset import layout, schema
 from openral_dataset.check import check_dataset
 from openral_dataset.recorder import RolloutRecorder
 from openral_dataset.testing import numbered_pixels, read_number
 from openral_dataset.video import StreamingVideoEncoder
 from openral_dataset.writer import LeRobotDatasetSink, read_tasks
+from openral_hal.manifests import load_robot_manifest
 from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.hardware import HardwareRunner
@@ -239,3 +251,124 @@ def test_the_first_write_failure_stops_recording_and_keeps_the_committed_episode
     report = check_dataset(tmp_path / "ds")
     assert report.problems == []
     assert (report.episodes, report.frames) == (1, 5)
+
+
+# -- the lerobot_dataset observer: built from a deployment, opened at start --------------------------
+
+
+def _deployment(rate_hz: float = 30.0) -> RobotEnvironment:
+    return RobotEnvironment.model_validate(
+        {
+            "hal": {"robot_id": "so101_follower", "adapter": "null"},
+            "vla": {"id": "noop"},
+            "rate_hz": rate_hz,
+            "sensors": [{"sensor_id": "front", "width": W, "height": H}, {"sensor_id": "wrist"}],
+        }
+    )
+
+
+def test_from_config_builds_the_cli_recording_and_opens_nothing_until_start(tmp_path: Path) -> None:
+    robot = load_robot_manifest("so101_follower")
+    recorder = RolloutRecorder.from_config(
+        {"root": "out/ds", "vcodec": "h264"}, robot=robot, env=_deployment(), base_dir=tmp_path
+    )
+    root = tmp_path / "out" / "ds"
+    try:
+        assert not root.exists()  # what openral validate builds leaves nothing behind
+        sink = recorder.sink
+        assert (sink.root, sink.fps, sink.robot_type, sink.vcodec) == (root, 30, robot.robot_id, "h264")
+        assert sink.joint_names == recorder.joint_names == robot.joint_names
+        assert sink.cameras == [schema.CameraSpec("front", W, H), schema.CameraSpec("wrist", 0, 0)]
+        assert not sink.is_open
+        recorder.start()
+        recorder.start()  # idempotent
+        assert sink.is_open
+        assert root.is_dir()
+    finally:
+        recorder.close()
+    assert list(root.rglob("*")) == []  # opened and closed without an episode: an empty folder
+
+
+def test_a_recorder_never_started_touches_no_file_when_closed(tmp_path: Path) -> None:
+    recorder = RolloutRecorder.from_config(
+        {"root": str(tmp_path / "ds")}, robot=load_robot_manifest("so101_follower"), env=_deployment()
+    )
+    recorder.close()
+    assert not (tmp_path / "ds").exists()
+
+
+def test_start_refuses_an_existing_dataset_naming_the_parameter(tmp_path: Path) -> None:
+    clock = FakeClock()
+    runner, _ = _runner(tmp_path, clock)
+    runner.activate()
+    runner.episode_start("pick")
+    runner.run(3)
+    runner.episode_end(success=True)
+    runner.deactivate()
+    recorder = RolloutRecorder.from_config(
+        {"root": "ds"}, robot=load_robot_manifest("so101_follower"), env=_deployment(), base_dir=tmp_path
+    )
+    try:
+        with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.root: .*already holds") as refused:
+            recorder.start()
+        assert "resume: true" in str(refused.value)
+    finally:
+        recorder.close()
+    assert check_dataset(tmp_path / "ds").problems == []
+
+
+@pytest.mark.parametrize(
+    ("params", "rate_hz", "named"),
+    [
+        ({"root": "ds", "fps": 30}, 30.0, r"observers\[\]\.params\.fps"),
+        ({"root": "ds", "vcodec": "vp9"}, 30.0, r"observers\[\]\.params\.vcodec"),
+        ({}, 30.0, r"observers\[\]\.params\.root"),
+        ({"root": "ds"}, 29.97, "rate_hz"),
+    ],
+    ids=["unknown-key", "bad-codec", "no-root", "fractional-rate"],
+)
+def test_a_bad_parameter_names_the_field(tmp_path: Path, params: dict[str, object], rate_hz: float, named: str) -> None:
+    with pytest.raises(ROSConfigError, match=named):
+        RolloutRecorder.from_config(
+            params, robot=load_robot_manifest("so101_follower"), env=_deployment(rate_hz), base_dir=tmp_path
+        )
+    assert not (tmp_path / "ds").exists()
+
+
+def test_the_tick_columns_mirror_tick_result_fields_under_their_published_names() -> None:
+    # LeRobot-loadable datasets already carry these column names: derived from the table, never renamed.
+    assert [(c.tick_field, c.column) for c in schema.TICK_COLUMNS] == [
+        ("tick_idx", "openral.tick_idx"),
+        ("start_ns", "openral.tick_start_ns"),
+        ("lateness_ms", "openral.lateness_ms"),
+        ("action_applied", "openral.action_applied"),
+        ("withheld_reason", "openral.withheld_reason"),
+        ("requested_action", "openral.requested_action"),
+    ]
+    assert {c.tick_field for c in schema.TICK_COLUMNS} <= set(TickResult.model_fields)
+
+
+def test_a_row_holds_each_mirrored_field_of_its_tick(tmp_path: Path) -> None:
+    sink = LeRobotDatasetSink(tmp_path / "ds", fps=FPS, robot_type="arm", joint_names=JOINTS, vcodec="h264")
+    recorder = RolloutRecorder(sink, joint_names=JOINTS)
+    joints = JointState(names=JOINTS, positions=[0.0, 0.1, 0.2], stamp_ns=1)
+    ticks = [
+        TickResult(tick_idx=7, start_ns=70, lateness_ms=1.5, step_idx=0, withheld_reason="deadline"),
+        TickResult(tick_idx=8, start_ns=80, action_applied=True, requested_action=[1.0, 2.0, 3.0], step_idx=1),
+    ]
+    recorder.on_episode_start(0, "pick")
+    for tick in ticks:
+        recorder.on_tick(tick, WorldState(stamp_ns=1, joint_state=joints))
+    recorder.on_episode_end(0, success=True)
+    recorder.close()
+    assert recorder.errors == 0
+    rows = pq.read_table(layout.data_file(tmp_path / "ds", 0)).to_pydict()
+    for column in schema.TICK_COLUMNS:
+        recorded = rows[column.column]
+        expected = [tick.model_dump(mode="json")[column.tick_field] for tick in ticks]
+        if column.tick_field == "withheld_reason":
+            expected = [value or "" for value in expected]
+        if column.tick_field == "requested_action":
+            assert all(math.isnan(v) for v in recorded[0])
+            recorded, expected = recorded[1:], expected[1:]
+        assert recorded == expected, column.column  # values exact in float32

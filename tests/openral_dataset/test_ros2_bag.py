@@ -14,8 +14,8 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from PIL import Image
 
-from openral_core import ROSConfigError, SensorReaderConfig
-from openral_dataset.ros2_bag import Ros2BagWriter
+from openral_core import ROSConfigError, SensorReaderConfig, TickResult
+from openral_dataset.ros2_bag import NOT_IN_TICK_RECORD, Ros2BagWriter
 from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.hardware import HardwareRunner
@@ -138,3 +138,31 @@ def test_building_creates_no_file_and_start_creates_it(tmp_path: Path) -> None:
 def test_a_missing_folder_is_refused_when_built_naming_the_field(tmp_path: Path) -> None:
     with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.path: .*no folder"):
         Ros2BagWriter(tmp_path / "nope" / "run.mcap", joint_names=JOINTS, field="observers[].params.path")
+
+
+def test_the_tick_record_is_every_tick_result_field_with_a_value_but_those_placed_elsewhere(tmp_path: Path) -> None:
+    path = tmp_path / "fields.mcap"
+    simulated = TickResult(
+        tick_idx=4,
+        tick_ms=1.5,
+        action_applied=False,
+        withheld_reason="safety",
+        requested_action=[0.1, 0.2, 0.3],
+        lateness_ms=0.0,
+        step_idx=3,
+        episode_idx=0,
+        reward=0.5,
+        terminated=False,
+        truncated=False,
+    )
+    bag = Ros2BagWriter(path, joint_names=JOINTS)
+    bag.start()
+    bag.on_tick(simulated, None)
+    bag.close()
+    assert set(TickResult.model_fields) >= NOT_IN_TICK_RECORD
+    (record,) = [
+        json.loads(m.ros_msg.data) for m in read_ros2_messages(str(path)) if m.channel.topic == "/openral/tick"
+    ]
+    with_value = {name for name, value in simulated if value is not None}
+    assert set(record) == with_value - NOT_IN_TICK_RECORD
+    assert (record["withheld_reason"], record["reward"], record["terminated"]) == ("safety", 0.5, False)

@@ -403,3 +403,20 @@ def test_a_commit_interrupted_at_any_point_is_undone_when_the_dataset_is_opened(
         assert _snapshot(root) == {**before, "notes.txt": b"mine"}, f"killed at operation {k}"
         reopened.close()
         assert check_dataset(root).problems == []
+
+
+def test_a_sink_built_to_open_later_touches_nothing_until_open(tmp_path: Path) -> None:
+    root = tmp_path / "later" / "ds"
+    sink = LeRobotDatasetSink(root, fps=30, robot_type="test_arm", joint_names=JOINTS, defer_open=True)
+    assert not sink.is_open
+    with pytest.raises(ROSRuntimeError, match="not opened"):
+        sink.begin_episode("pick")
+    sink.close()
+    assert not (tmp_path / "later").exists()
+    sink.open()
+    sink.open()  # idempotent
+    sink.begin_episode("pick")
+    sink.add_row(_row(0), {})
+    sink.end_episode(success=True)
+    sink.close()
+    assert check_dataset(root).problems == []

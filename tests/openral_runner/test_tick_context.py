@@ -32,3 +32,17 @@ def test_each_context_has_its_own_lists() -> None:
     first, second = TickContext(0, 0.0, 1.0), TickContext(1, 1.0, 2.0)
     first.stale_sensors.append("front")
     assert second.stale_sensors == []
+
+
+def test_every_result_field_is_read_off_the_context_and_the_contexts_own_stay_behind() -> None:
+    tick = TickContext(2, 1.0, 1.1)
+    tick.terminated, tick.truncated = True, False
+    values = tick.result(tick_ms=0.5, trace_context=None).__dict__
+    assert set(values) == set(TickResult.model_fields)
+    for own in ("start_s", "deadline_s", "withheld", "deadline_checked", "world"):
+        assert own not in values
+    for name in TickResult.model_fields:
+        if hasattr(tick, name):
+            assert values[name] is getattr(tick, name), f"{name} is not the context's own value"
+    assert values["start_ns"] == 1_000_000_000
+    assert values["deadline_missed"] is False

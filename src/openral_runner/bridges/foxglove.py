@@ -1,58 +1,48 @@
 """``FoxgloveSink``: every tick to a live Foxglove WebSocket, off the tick thread.
 
-Channels (one schema each; JSON messages carry a JSON Schema, so Foxglove plots any field):
+Channels (one schema each; JSON messages carry a JSON Schema, so Foxglove plots any field;
+non-finite numbers are sent as ``null``):
 
-- ``/openral/tick`` (JSON ``openral.Tick``): one message per tick with the phase timings
-  (``tick_ms``, ``sensors_ms``, ``world_state_ms``, ``inference_ms``, ``safety_ms``, ``hal_ms``),
-  ``lateness_ms``, ``deadline_missed``, ``action_applied``, ``withheld_reason``,
-  ``requested_action`` / ``sent_action``, ``stale_sensors``, ``safety_violations``, and the
-  sink's own ``dropped`` count.
+- ``/openral/tick`` (JSON ``openral.Tick``): one message per tick, its ``TickResult`` as
+  ``model_dump(mode="json")`` under the schema ``TickResult.model_json_schema()`` gives, plus
+  ``timestamp`` and the sink's ``dropped`` count: a field added to ``TickResult`` appears unedited.
 - ``/joint_states`` (JSON ``openral.JointState``): one message per tick that saw a joint state,
   with ``name``, ``position``, ``velocity``, ``effort`` (ROS ``sensor_msgs/JointState`` field names).
 - ``/openral/safety`` (JSON ``openral.SafetyEvent``): one message per safety violation
-  (``kind="safety_violation"``) and one per withheld action (``kind="action_withheld"``), with
-  ``reason``.
+  (``kind="safety_violation"``) and one per withheld action (``kind="action_withheld"``), with ``reason``.
 - ``/camera/<sensor_id>/compressed`` (``foxglove.CompressedImage``): the runner's JPEG thumbnails
-  of each camera (at its ``thumbnail_hz``; encoded once for every viewer, see
-  :mod:`openral_runner.thumbnails`).
+  (:mod:`openral_runner.thumbnails`, encoded once for every viewer at the deployment's ``thumbnail_hz``).
 
-Times: a message's log time is the wall-clock time at which its tick was handed to the sink,
-taken as ``time.monotonic_ns()`` plus one offset to ``time.time_ns()`` sampled when the sink is
-built. Every stamp therefore keeps exact monotonic intervals (no NTP steps inside a recording).
-``timestamp`` fields inside messages are the tick's hand-over time for ticks and safety events,
-and the measurement's own monotonic stamp (joint-state read, frame capture) mapped with the same
-offset for joint states and images.
+Times: a message's log time is the wall-clock time at which its tick was handed to the sink:
+``time.monotonic_ns()`` plus one offset to ``time.time_ns()`` sampled when the sink is built, so
+stamps keep exact monotonic intervals (no NTP steps inside a recording). ``timestamp`` fields are
+that hand-over time for ticks and safety events, and the measurement's own monotonic stamp
+(joint-state read, frame capture) mapped with the same offset for joint states and images.
 
-The tick thread only appends a reference to a bounded queue (the oldest entry is dropped and
-counted when it is full); thumbnails arrive from the runner's thumbnail worker into a
-latest-per-camera slot. A worker thread wakes every ``flush_interval_s`` and serialises and logs
-what accumulated.
+Ticks go through :class:`~openral_observability.queued_observer.QueuedObserver` (every tick in
+order; when the queue is full the oldest is dropped and counted), thumbnails through a
+:class:`~openral_observability.latest_observer.LatestPerKeyObserver` (the newest per camera wins;
+one still waiting is replaced and counted), each on its own worker.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import threading
 import time
-from collections import deque
 from collections.abc import Callable, Mapping
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from openral_core import (
-    JointState,
-    ROSConfigError,
-    ROSDependencyMissing,
-    TickResult,
-    WorldState,
-)
+from openral_core import JointState, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
 from openral_core.config import validate_model
-from openral_observability.observer import Thumbnail, TickObserver
+from openral_observability.latest_observer import LatestPerKeyObserver
+from openral_observability.observer import Thumbnail
+from openral_observability.queued_observer import QueuedObserver
 
 try:
     import foxglove
@@ -75,33 +65,53 @@ SAFETY_KIND_WITHHELD = "action_withheld"
 DEFAULT_PORT = 8765
 """Foxglove's usual WebSocket port: what ``--foxglove`` without a value serves on."""
 
-_TIME: dict[str, Any] = {
+
+def _plain_json_schema(model: type[BaseModel]) -> dict[str, Any]:
+    """``model``'s JSON Schema in the plain dialect a viewer reads: no ``$ref``, nullable as a type list.
+
+    Local ``$defs`` references are inlined, and ``anyOf: [X, {"type": "null"}]`` becomes ``X``
+    with ``"type": [X's type, "null"]`` (and ``null`` among its ``enum``, if it has one).
+    """
+    schema = model.model_json_schema(mode="serialization")
+    defs = schema.pop("$defs", {})
+
+    def plain(node: Any) -> Any:
+        if isinstance(node, list):
+            return [plain(item) for item in node]
+        if not isinstance(node, dict):
+            return node
+        if "$ref" in node:
+            return plain({**defs[node["$ref"].rsplit("/", 1)[-1]], **{k: v for k, v in node.items() if k != "$ref"}})
+        options = node.get("anyOf")
+        if isinstance(options, list) and len(options) == 2 and {"type": "null"} in options:
+            other = plain(next(option for option in options if option != {"type": "null"}))
+            rest = {key: plain(value) for key, value in node.items() if key != "anyOf"}
+            if isinstance(other.get("type"), str):
+                if "enum" in other:
+                    other["enum"] = [*other["enum"], None]
+                return {**other, **rest, "type": [other["type"], "null"]}
+        return {key: plain(value) for key, value in node.items()}
+
+    out: dict[str, Any] = plain(schema)
+    return out
+
+
+_TIME: Final[dict[str, Any]] = {
     "type": "object",
     "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
 }
-_NUMBERS: dict[str, Any] = {"type": ["array", "null"], "items": {"type": ["number", "null"]}}
-_STRINGS: dict[str, Any] = {"type": "array", "items": {"type": "string"}}
+_NUMBERS: Final[dict[str, Any]] = {"type": ["array", "null"], "items": {"type": ["number", "null"]}}
+_STRINGS: Final[dict[str, Any]] = {"type": "array", "items": {"type": "string"}}
+_TICK_FIELDS: Final = _plain_json_schema(TickResult)
+_SAFETY_TICK_FIELDS: Final = ("tick_idx", "action_applied", "requested_action", "sent_action")
+"""The tick's fields a safety event repeats."""
 
 TICK_SCHEMA: dict[str, Any] = {
+    **_TICK_FIELDS,
     "title": "openral.Tick",
-    "type": "object",
     "properties": {
         "timestamp": _TIME,
-        "tick_idx": {"type": "integer"},
-        "tick_ms": {"type": "number"},
-        "sensors_ms": {"type": "number"},
-        "world_state_ms": {"type": "number"},
-        "inference_ms": {"type": "number"},
-        "safety_ms": {"type": "number"},
-        "hal_ms": {"type": "number"},
-        "lateness_ms": {"type": "number"},
-        "deadline_missed": {"type": "boolean"},
-        "action_applied": {"type": "boolean"},
-        "withheld_reason": {"type": ["string", "null"]},
-        "requested_action": _NUMBERS,
-        "sent_action": _NUMBERS,
-        "stale_sensors": _STRINGS,
-        "safety_violations": _STRINGS,
+        **_TICK_FIELDS["properties"],
         "dropped": {"type": "integer", "description": "ticks this sink dropped so far (queue full)"},
     },
 }
@@ -122,12 +132,9 @@ SAFETY_SCHEMA: dict[str, Any] = {
     "type": "object",
     "properties": {
         "timestamp": _TIME,
-        "tick_idx": {"type": "integer"},
         "kind": {"type": "string", "enum": [SAFETY_KIND_VIOLATION, SAFETY_KIND_WITHHELD]},
         "reason": {"type": "string"},
-        "action_applied": {"type": "boolean"},
-        "requested_action": _NUMBERS,
-        "sent_action": _NUMBERS,
+        **{name: _TICK_FIELDS["properties"][name] for name in _SAFETY_TICK_FIELDS},
     },
 }
 
@@ -140,11 +147,24 @@ class FoxgloveParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    port: int = Field(default=8765, ge=0, le=65535, description="Serve the live WebSocket here (0: any free port).")
+    port: int = Field(
+        default=DEFAULT_PORT, ge=0, le=65535, description="Serve the live WebSocket here (0: any free port)."
+    )
     host: str = Field(default="127.0.0.1", description="Interface the live server binds to.")
 
 
-class FoxgloveSink(TickObserver):
+class _NewestImages(LatestPerKeyObserver[str, tuple[Thumbnail, int]]):
+    """The newest thumbnail of each camera with its hand-over time, published on this worker."""
+
+    def __init__(self, publish: Callable[[Thumbnail, int], None], *, close_timeout_s: float) -> None:
+        super().__init__(name="openral-foxglove-images", close_timeout_s=close_timeout_s)
+        self._publish = publish
+
+    def handle_item(self, key: str, item: tuple[Thumbnail, int]) -> None:
+        self._publish(*item)
+
+
+class FoxgloveSink(QueuedObserver):
     """A tick observer that serves a live Foxglove WebSocket.
 
     A file of the session is the ROS 2 bag (:mod:`openral_dataset.ros2_bag`, ``--mcap``). The
@@ -159,10 +179,10 @@ class FoxgloveSink(TickObserver):
         flush_interval_s: How often the worker wakes to publish what was handed over (the live
             view's added latency). The tick thread wakes it early only when the queue is half
             full: waking a sleeping thread costs the tick thread tens of µs, appending costs ~1 µs.
-        close_timeout_s: How long :meth:`close` waits for the worker to drain.
+        close_timeout_s: How long :meth:`close` waits for each worker to drain.
 
     Raises:
-        ROSConfigError: ``queue_size`` is below 1.
+        ROSConfigError: ``queue_size`` is below 2, or ``flush_interval_s`` is not positive.
     """
 
     def __init__(
@@ -174,11 +194,8 @@ class FoxgloveSink(TickObserver):
         flush_interval_s: float = 0.02,
         close_timeout_s: float = 5.0,
     ) -> None:
-        if queue_size < 1:
-            raise ROSConfigError(f"queue_size must be at least 1, got {queue_size}", field="queue_size")
-        self._close_timeout_s = close_timeout_s
-        self._flush_interval_s = flush_interval_s
-        self._wake_at = max(1, queue_size // 2)
+        if queue_size < 2:
+            raise ROSConfigError(f"queue_size must be at least 2, got {queue_size}", field="queue_size")
         self._offset_ns = time.time_ns() - time.monotonic_ns()
         self._context = foxglove.Context()
         self._listen = None if port is None else (host, port)
@@ -189,17 +206,21 @@ class FoxgloveSink(TickObserver):
         self._safety_channel = foxglove.Channel(TOPIC_SAFETY, schema=SAFETY_SCHEMA, context=self._context)
         self._camera_channels: dict[str, CompressedImageChannel] = {}
 
-        self._cond = threading.Condition()
-        self._ticks: deque[_Item] = deque(maxlen=queue_size)
-        self._images: dict[str, tuple[Thumbnail, int]] = {}
-        self._closed = False
-        self.dropped = 0
-        self.images_replaced = 0
+        self._handed_ns: dict[int, int] = {}
+        """Hand-over time of each queued tick, by the tick's ``id`` (the queue holds the tick, so the id is unique)."""
+        self._finished = False
         self.ticks_published = 0
+        """Ticks whose messages were logged."""
         self.images_published = 0
-        self.publish_errors = 0
-        self._thread = threading.Thread(target=self._run, name="openral-foxglove", daemon=True)
-        self._thread.start()
+        """Thumbnails logged."""
+        self._images = _NewestImages(self._publish_image, close_timeout_s=close_timeout_s)
+        super().__init__(
+            name="openral-foxglove",
+            max_queue=queue_size,
+            flush_interval_s=flush_interval_s,
+            close_timeout_s=close_timeout_s,
+        )
+        self._images.start()
 
     def start(self) -> None:
         """Bind the live server (when a port was given). Idempotent; building the sink binds nothing.
@@ -236,7 +257,7 @@ class FoxgloveSink(TickObserver):
         """The Foxglove context the channels log into (attach more sinks to it)."""
         return self._context
 
-    # -- what the CLI reads ---------------------------------------------------------------
+    # -- what the CLI and tests read ------------------------------------------------------
 
     @property
     def port(self) -> int | None:
@@ -248,41 +269,46 @@ class FoxgloveSink(TickObserver):
         """A Foxglove app link that opens this live server, ``None`` without a server."""
         return None if self._server is None else self._server.app_url()
 
-    # -- TickObserver ---------------------------------------------------------------------
+    @property
+    def dropped(self) -> int:
+        """Ticks dropped because the queue was full."""
+        return self.overflowed
+
+    @property
+    def images_replaced(self) -> int:
+        """Thumbnails replaced by a newer one of the same camera before they were published."""
+        return self._images.replaced
+
+    @property
+    def publish_errors(self) -> int:
+        """Ticks and thumbnails whose publishing failed."""
+        return self.errors + self._images.errors
+
+    # -- tick thread and thumbnail worker ---------------------------------------------------
 
     def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
         """Hand one tick over to the worker (tick thread; never blocks on I/O, touches no pixels)."""
-        now_ns = time.monotonic_ns()
-        joints = None if world is None else world.joint_state
-        with self._cond:
-            if self._closed:
-                return
-            if len(self._ticks) == self._ticks.maxlen:
-                self.dropped += 1
-            self._ticks.append((tick, joints, now_ns))
-            if len(self._ticks) == self._wake_at:
-                self._cond.notify()
+        if self._finished:
+            return
+        self._handed_ns[id(tick)] = time.monotonic_ns()
+        super().on_tick(tick, world)
+
+    def on_overflow(self, tick: TickResult) -> None:
+        self._handed_ns.pop(id(tick), None)
 
     def on_thumbnail(self, thumb: Thumbnail) -> None:
-        """Keep a camera's newest thumbnail for the worker (called on the runner's thumbnail thread)."""
-        now_ns = time.monotonic_ns()
-        with self._cond:
-            if self._closed:
-                return
-            if thumb.sensor_id in self._images:
-                self.images_replaced += 1
-            self._images[thumb.sensor_id] = (thumb, now_ns)
+        """Keep a camera's newest thumbnail for the image worker (called on the runner's thumbnail thread)."""
+        if not self._finished:
+            self._images.offer(thumb.sensor_id, (thumb, time.monotonic_ns()))
 
     def close(self) -> None:
-        """Drain what was handed over, finish the MCAP file and stop the server. Idempotent."""
-        with self._cond:
-            if self._closed:
-                return
-            self._closed = True
-            self._cond.notify_all()
-        self._thread.join(self._close_timeout_s)
-        if self._thread.is_alive():
-            _log.warning("foxglove sink did not drain in time; closing anyway", timeout_s=self._close_timeout_s)
+        """Publish what was handed over, close the channels and stop the server. Idempotent."""
+        if self._finished:
+            return
+        self._finished = True
+        super().close()
+        self._images.close()
+        self._handed_ns.clear()  # ticks offered while closing were never queued
         with ExitStack() as stack:
             # Unwinds in reverse: channels, then the server.
             if self._server is not None:
@@ -300,59 +326,19 @@ class FoxgloveSink(TickObserver):
     def __exit__(self, *_exc: object) -> None:
         self.close()
 
-    # -- worker -------------------------------------------------------------------------------
+    # -- workers --------------------------------------------------------------------------------
 
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                if not self._closed:
-                    self._cond.wait(self._flush_interval_s)
-                ticks = list(self._ticks)
-                self._ticks.clear()
-                images, self._images = self._images, {}
-                if self._closed and not ticks and not images:
-                    return
-            for item in ticks:
-                self._guarded(self._publish_tick, item)
-            for thumb, handed_ns in images.values():
-                self._guarded(self._publish_image, thumb, handed_ns)
-
-    def _guarded(self, publish: Callable[..., None], *args: Any) -> None:
-        try:
-            publish(*args)
-        except Exception as exc:  # the worker must outlive one bad message
-            self.publish_errors += 1
-            if self.publish_errors == 1:
-                _log.error("foxglove sink failed to publish; counting further failures", error=repr(exc))
+    def handle_tick(self, tick: TickResult, world: WorldState | None) -> None:
+        handed_ns = self._handed_ns.pop(id(tick), None)
+        joints = None if world is None else world.joint_state
+        self._publish_tick((tick, joints, time.monotonic_ns() if handed_ns is None else handed_ns))
 
     def _publish_tick(self, item: _Item) -> None:
         tick, joints, handed_ns = item
         log_time = handed_ns + self._offset_ns
         stamp = _stamp(log_time)
-        self._tick_channel.log(
-            _dumps(
-                {
-                    "timestamp": stamp,
-                    "tick_idx": tick.tick_idx,
-                    "tick_ms": tick.tick_ms,
-                    "sensors_ms": tick.sensors_ms,
-                    "world_state_ms": tick.world_state_ms,
-                    "inference_ms": tick.inference_ms,
-                    "safety_ms": tick.safety_ms,
-                    "hal_ms": tick.hal_ms,
-                    "lateness_ms": tick.lateness_ms,
-                    "deadline_missed": tick.deadline_missed,
-                    "action_applied": tick.action_applied,
-                    "withheld_reason": tick.withheld_reason,
-                    "requested_action": tick.requested_action,
-                    "sent_action": tick.sent_action,
-                    "stale_sensors": tick.stale_sensors,
-                    "safety_violations": tick.safety_violations,
-                    "dropped": self.dropped,
-                }
-            ),
-            log_time=log_time,
-        )
+        record = tick.model_dump(mode="json")
+        self._tick_channel.log(_dumps({"timestamp": stamp, **record, "dropped": self.dropped}), log_time=log_time)
         if joints is not None:
             measured = joints.stamp_ns + self._offset_ns if joints.stamp_ns else log_time
             self._joint_channel.log(
@@ -370,18 +356,15 @@ class FoxgloveSink(TickObserver):
             )
         events = [(SAFETY_KIND_VIOLATION, reason) for reason in tick.safety_violations]
         if tick.withheld_reason is not None:
-            events.append((SAFETY_KIND_WITHHELD, tick.withheld_reason))
+            events.append((SAFETY_KIND_WITHHELD, record["withheld_reason"]))
         for kind, reason in events:
             self._safety_channel.log(
                 _dumps(
                     {
                         "timestamp": stamp,
-                        "tick_idx": tick.tick_idx,
                         "kind": kind,
                         "reason": reason,
-                        "action_applied": tick.action_applied,
-                        "requested_action": tick.requested_action,
-                        "sent_action": tick.sent_action,
+                        **{name: record[name] for name in _SAFETY_TICK_FIELDS},
                     }
                 ),
                 log_time=log_time,
@@ -411,8 +394,7 @@ def _stamp(wall_ns: int) -> dict[str, int]:
 
 
 def _timestamp(wall_ns: int) -> Timestamp:
-    sec, nsec = divmod(wall_ns, 1_000_000_000)
-    return Timestamp(sec, nsec)
+    return Timestamp(*divmod(wall_ns, 1_000_000_000))
 
 
 def _dumps(message: dict[str, Any]) -> bytes:

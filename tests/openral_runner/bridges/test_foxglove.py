@@ -424,3 +424,78 @@ def test_a_deployment_configures_the_view_and_the_bag_in_its_observers_block(
     )
     assert bad.returncode == 2
     assert "fps" in bad.stderr
+
+
+def every_field_set() -> TickResult:
+    """A tick with a value (not the default, not ``None``) in every field."""
+    tick = make_tick(
+        3,
+        start_ns=5,
+        withheld_reason="safety",
+        safety_violations=["joint 'gripper' clamped"],
+        stale_sensors=["front"],
+        deadline_missed=True,
+        lateness_ms=0.7,
+        trace_context="00-" + "a" * 32 + "-" + "b" * 16 + "-01",
+        step_idx=2,
+        episode_idx=1,
+        reward=0.25,
+        terminated=True,
+        truncated=True,
+    )
+    unset = [name for name, info in TickResult.model_fields.items() if getattr(tick, name) == info.get_default()]
+    assert unset == [], f"the probe leaves {unset} at their defaults"
+    return tick
+
+
+def test_a_tick_message_is_the_tick_result_under_the_tick_result_schema(tmp_path: Path, sink_cls, read_mcap) -> None:
+    jsonschema = pytest.importorskip("jsonschema", reason="needs jsonschema (dev group)")
+    path = tmp_path / "fields.mcap"
+    tick = every_field_set()
+    with sink_cls(mcap_path=path) as sink:
+        sink.on_tick(tick, None)
+    messages = read_mcap(path)
+    ((schema, _, message),) = messages["/openral/tick"]
+    payload = json.loads(message.data)
+    assert {k: v for k, v in payload.items() if k not in ("timestamp", "dropped")} == tick.model_dump(mode="json")
+    assert schema.encoding == "jsonschema"
+    declared = json.loads(schema.data)
+    assert set(declared["properties"]) == {"timestamp", "dropped", *TickResult.model_fields}
+    for keyword in ("$ref", "anyOf"):  # the plain dialect a viewer reads
+        assert keyword not in schema.data.decode()
+    jsonschema.validate(payload, declared)
+    jsonschema.validate({**payload, "withheld_reason": None, "reward": None}, declared)
+    events = messages["/openral/safety"]
+    assert [json.loads(m.data)["kind"] for _, _, m in events] == ["safety_violation", "action_withheld"]
+    for event_schema, _, event in events:
+        jsonschema.validate(json.loads(event.data), json.loads(event_schema.data))
+
+
+def test_camera_images_do_not_wait_behind_a_stalled_tick_worker(tmp_path: Path, sink_cls) -> None:
+    sink = sink_cls(mcap_path=tmp_path / "images.mcap")
+    entered = threading.Event()
+    release = threading.Event()
+    real_publish = sink._publish_tick
+
+    def stalled(item) -> None:
+        entered.set()
+        release.wait(10)
+        real_publish(item)
+
+    sink._publish_tick = stalled
+    sink.on_tick(make_tick(0), make_world(0))
+    assert entered.wait(5), "worker never picked up the first tick"
+    frame = make_world(1).image_frames["wrist"]  # type: ignore[index]
+    sink.on_thumbnail(encode_thumbnail(frame))
+    deadline = time.monotonic() + 5
+    while sink.images_published < 1:
+        assert time.monotonic() < deadline, "the image waited for the tick worker"
+        time.sleep(0.005)
+    release.set()
+    sink.close()
+    assert (sink.ticks_published, sink.images_published, sink.publish_errors) == (1, 1, 0)
+
+
+def test_a_queue_smaller_than_two_names_the_parameter(sink_cls) -> None:
+    with pytest.raises(ROSConfigError, match="queue_size"):
+        sink_cls(queue_size=1)
