@@ -89,20 +89,22 @@ class BusyChunkSkill(RSkillBase):
     def info(self) -> RSkillInfo:
         return self._info
 
-    def _step_impl(self, world_state: WorldState) -> Action:
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
         self._session.run(None, {"x": self._x})  # the GIL is released for the whole inference
-        assert world_state.joint_state is not None
-        pose = list(world_state.joint_state.positions)
-        return Action(joint_names=self.robot.joint_names, targets=[pose] * CHUNK)
+        joints = request.world.joint_state
+        assert joints is not None
+        return np.repeat(np.asarray(joints.positions, dtype=np.float64)[None, :], CHUNK, axis=0)
+
+    def _step_impl(self, world_state: WorldState) -> Action:
+        row = self._chunk_impl(ChunkRequest(world_state))[0]
+        return Action(joint_names=self.robot.joint_names, targets=[row.tolist()])
 
 
 def _step_cost(seconds: float) -> None:
     """Time ``step`` warm (back to back, the executor's own work) and after a 10 ms sleep (what a tick pays)."""
     names = [f"j{i}" for i in range(6)]
     world = WorldState(stamp_ns=0, joint_state=JointState(names=names, positions=[0.0] * 6))
-    warm = ChunkedExecutor(
-        lambda _w: np.zeros((1000, 6)), action_names=names, chunk_size=1000, virtual_delay=lambda _i: 0
-    )
+    warm = ChunkedExecutor(lambda _w: np.zeros((1000, 6)), action_names=names, virtual_delay=lambda _i: 0)
     costs = []
     for tick in range(5000):
         t0 = time.perf_counter_ns()
@@ -118,7 +120,7 @@ def _step_cost(seconds: float) -> None:
         time.sleep(0.06)
         return np.zeros((CHUNK, 6))
 
-    executor = ChunkedExecutor(infer, action_names=names, chunk_size=CHUNK)
+    executor = ChunkedExecutor(infer, action_names=names)
     costs = []
     period = 0.01
     start = time.perf_counter()

@@ -1,18 +1,22 @@
-"""Remote inference benchmark: one VGA observation in, one 50x6 chunk out, at 30 Hz, four ways, one run.
+"""Remote inference benchmark: one VGA observation in, one 50x6 chunk out, at 30 Hz, five ways, one run.
 
 1. openral over Zenoh TCP on loopback (``openral_remote``: the wire codec, a queryable, one worker,
    the observation rebuilt as a ``WorldState`` and stepped through a skill, the chunk encoded back).
 2. The same over Zenoh shared memory (the request is written into a shared segment).
+   Then the TCP round trip as the chunk executor asks for it: the ``remote_policy`` skill's chunk.
 3. gRPC + pickle, as LeRobot's async inference does it: the observation dict pickled into a
    unary call, the chunk pickled back (code execution on both ends; here only for comparison).
 4. Zenoh alone: the same bytes to a queryable whose worker replies a fixed chunk's bytes (no
-   codec, no skill): the floor that openral's own Python work adds to.
+   codec, no skill): the floor that openral's own Python work adds to. openral's share is its TCP
+   p50 minus this one's, printed last.
 
 Then: how long after a server's SIGKILL the client knows it is down (liveliness, no request made).
 
 Each server runs in its own process and returns a fixed-shape chunk at once, so the figures are
 the transport's and the codec's; paced at the rate (caches go cold between requests, as on a
-robot) and back to back. Target: openral TCP p50 <= 3 ms on loopback at 30 Hz.
+robot) and back to back. Every process keeps its message memory (``keep_message_memory``), as
+``openral serve`` and a deployment on a remote policy do. Target: openral TCP p50 <= 3 ms on
+loopback at 30 Hz.
 
 Run:  uv run python benchmarks/remote.py [--seconds 10] [--rate-hz 30]
 """
@@ -32,12 +36,16 @@ import numpy as np
 
 from _common import machine_line
 from openral_core import FrameEncoding, JointState, SensorFrame, WorldState
+from openral_hal.manifests import load_robot_manifest
+from openral_remote.allocator import keep_message_memory
 from openral_remote.client import RemotePolicyClient
 from openral_remote.codec import encode
-from openral_remote.config import ZenohConfig
+from openral_remote.config import RemotePolicyParams, ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.observation import world_fields
+from openral_remote.skill import RemotePolicySkill
 from openral_remote.testing import POLICY, ROBOT, free_endpoint
+from openral_rskill.chunks import ChunkRequest
 
 CHUNK, DIMS = 50, 6
 GRPC_METHOD = "/openral.bench.Policy/Infer"
@@ -78,14 +86,19 @@ def _paced(call: Callable[[], Any], seconds: float, rate_hz: float) -> Timings:
     return paced, back_to_back
 
 
-def _zenoh(seconds: float, rate_hz: float, shared_memory: bool) -> Timings:
-    endpoint = free_endpoint()
-    server = subprocess.Popen(
+def _policy_server(endpoint: str, rate_hz: float) -> subprocess.Popen[bytes]:
+    """A policy server of a fixed-shape chunk (``openral_remote.testing``) in its own process."""
+    return subprocess.Popen(
         [
             *(sys.executable, "-m", "openral_remote.testing", "--listen", endpoint, "--dims", str(DIMS)),
             *("--chunk-size", str(CHUNK), "--rate-hz", str(rate_hz), "--observation", "all"),
         ],
     )
+
+
+def _zenoh(seconds: float, rate_hz: float, shared_memory: bool) -> Timings:
+    endpoint = free_endpoint()
+    server = _policy_server(endpoint, rate_hz)
     client = RemotePolicyClient(
         PolicyKeys.of(ROBOT, POLICY), ZenohConfig(connect=[endpoint], shared_memory=shared_memory), deadline_ms=2000
     )
@@ -97,6 +110,33 @@ def _zenoh(seconds: float, rate_hz: float, shared_memory: bool) -> Timings:
         return _paced(lambda: client.infer(world), seconds, rate_hz)
     finally:
         client.close()
+        server.terminate()
+        server.wait(10)
+
+
+def _skill(seconds: float, rate_hz: float) -> Timings:
+    """The round trip as the chunk executor sees it: ``remote_policy``'s ``step_chunk`` (client, skill, TCP)."""
+    endpoint = free_endpoint()
+    server = _policy_server(endpoint, rate_hz)
+    params = RemotePolicyParams(
+        policy=POLICY,
+        robot=ROBOT,
+        zenoh=ZenohConfig(connect=[endpoint], shared_memory=False),
+        deadline_ms=2000,
+        connect_timeout_s=30,
+    )
+    try:
+        skill = RemotePolicySkill(load_robot_manifest("so101_follower"), params, rate_hz=rate_hz)
+        skill.configure()
+        skill.activate()
+        try:
+            request = ChunkRequest(_world())
+            rows = skill.step_chunk(request)
+            assert rows.shape == (CHUNK, DIMS), rows.shape
+            return _paced(lambda: skill.step_chunk(request), seconds, rate_hz)
+        finally:
+            skill.shutdown()
+    finally:
         server.terminate()
         server.wait(10)
 
@@ -183,6 +223,7 @@ def echo_server(endpoint: str) -> None:
             jobs.append(query)
             wake.notify()
 
+    keep_message_memory()
     session = open_session(ZenohConfig(listen=[endpoint]))
     threading.Thread(target=work, daemon=True).start()
     session.declare_queryable(ECHO_KEY, on_query, complete=True)
@@ -257,12 +298,14 @@ def main() -> None:
     if args.echo_server is not None:
         echo_server(args.echo_server)
         return
+    keep_message_memory()
     print(machine_line())
     print(f"VGA BGR observation (921,600 B of pixels) + {DIMS} joints in, {CHUNK}x{DIMS} chunk out")
     print(f"paced at {args.rate_hz:g} Hz for {args.seconds:g} s, then as many back to back")
     rows = [
         ("openral / Zenoh TCP", _zenoh(args.seconds, args.rate_hz, shared_memory=False)),
         ("openral / Zenoh shared memory", _zenoh(args.seconds, args.rate_hz, shared_memory=True)),
+        ("openral / remote_policy, TCP", _skill(args.seconds, args.rate_hz)),
         ("gRPC + pickle (LeRobot's way)", _grpc(args.seconds, args.rate_hz)),
         ("Zenoh alone, TCP (bytes echo)", _echo(args.seconds, args.rate_hz)),
     ]
@@ -277,6 +320,12 @@ def main() -> None:
         b2b = float(np.percentile(back_to_back, 50))
         print(f"{name:32s} {len(paced):5d} {p50:8.2f} {p99:8.2f} {max(paced):8.2f} {p50 / tcp_p50:18.2f} {b2b:17.2f}")
 
+    floor = rows[-1][1]
+    for index, label in ((0, "openral TCP"), (2, "remote_policy skill")):
+        paced, back_to_back = rows[index][1]
+        share = float(np.percentile(paced, 50) - np.percentile(floor[0], 50))
+        share_b2b = float(np.percentile(back_to_back, 50) - np.percentile(floor[1], 50))
+        print(f"openral's share ({label} p50 - Zenoh alone p50): paced {share:.2f} ms, back to back {share_b2b:.2f} ms")
     print(f"server SIGKILLed -> client knows it is down: {' '.join(f'{ms:.1f}' for ms in detection)} ms")
 
 

@@ -6,7 +6,7 @@ import importlib
 import logging
 import math
 import sys
-from contextlib import ExitStack
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,11 +18,14 @@ from openral_cli.record import record
 from openral_cli.recording import (
     MCAP_OPTION,
     VCODEC_OPTION,
-    build_recorder,
-    build_rosbag,
     dataset,
+    dataset_entry,
+    foxglove_entry,
+    recorder_of,
     recording_summary,
     replay,
+    rosbag_entry,
+    with_observers,
     with_thumbnails,
 )
 from openral_cli.serve import serve
@@ -43,6 +46,7 @@ from openral_core.schema import FILE_MODELS, schema_json
 from openral_hal.manifests import load_robot_manifest
 from openral_observability import semconv
 from openral_observability.logs import OTelLogBridge, add_trace_ids
+from openral_observability.observer import TickObserver
 from openral_observability.setup import PROTOCOLS
 from openral_runner.factory import check_deployment
 
@@ -248,50 +252,54 @@ def _deploy(
     rosbag: Path | None = None,
     config_path: Path | None = None,
 ) -> RunResult:
-    """Build, start, run and close one deployment; a stop signal at any point unwinds what was started."""
-    with ExitStack() as made:  # closes what was made if something after it fails to build
-        recorder = None
-        if recording is not None:
-            recorder = build_recorder(env, recording.root, resume=recording.resume, vcodec=recording.vcodec)
-            made.callback(recorder.close)
-        observers = []
-        if rosbag is not None:
-            env = with_thumbnails(env, FOXGLOVE_IMAGE_HZ)  # the bag's images are the runner's thumbnails
-            bag = build_rosbag(env, rosbag, deployment=config_path)
-            made.callback(bag.close)
-            observers.append(bag)
-        if foxglove_port is not None:
-            env = with_thumbnails(env, FOXGLOVE_IMAGE_HZ)  # the view shows the runner's camera thumbnails
-            # Loaded only when asked for: the bridge imports foxglove-sdk (the 'foxglove' extra).
-            bridge = importlib.import_module("openral_runner.bridges.foxglove")
-            sink = bridge.FoxgloveSink(port=foxglove_port)
-            made.callback(sink.close)
-            sink.start()  # bound now, so the address can be printed before the robot starts
-            observers.append(sink)
-            if sink.port is not None and not quiet:
-                click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
-        try:
-            with running(env, base_dir, signals=signals, recorder=recorder, observers=observers) as runner:
-                if recorder is not None:
-                    recorder.on_failure = runner.request_stop  # the dataset cannot be written: stop there
-                _log.info("running", deployment=env.name, rate_hz=env.rate_hz, skill=env.vla.id, robot=env.hal.robot_id)
-                if recording is not None:
-                    runner.episode_start(recording.task)
-                with LiveStatus(runner, sys.stderr, title=env.name):
-                    result = runner.run(max_ticks, duration_s=duration)
-                if recording is not None:
-                    runner.episode_end(success=result.stop_reason in _SUCCESSFUL_STOPS)
-            if recorder is not None:  # closed with the runner: every tick is written, the report is final
-                result.metadata["recording"] = recorder.report()
-        except ROSStopRequested as exc:
-            _log.info("stopped before the first tick; everything started was closed", reason=exc.reason)
-            return stopped_before_start(env, exc)
-        finally:
-            if recorder is not None and not quiet:
-                click.echo(recording_summary(recorder), err=True)
+    """Build, start, run and close one deployment; a stop signal at any point unwinds what was started.
+
+    ``--dataset-out``, ``--mcap`` and ``--foxglove`` add the observer entries they stand for; the
+    runner builds and starts them as it does the file's own.
+    """
+    if recording is not None:  # first, as a file would list it: it hears each tick before the viewers
+        env = with_observers(
+            env, dataset_entry(recording.root, resume=recording.resume, vcodec=recording.vcodec), first=True
+        )
+    if rosbag is not None:
+        env = with_observers(with_thumbnails(env, FOXGLOVE_IMAGE_HZ), rosbag_entry(rosbag, deployment=config_path))
+    if foxglove_port is not None:
+        env = with_observers(with_thumbnails(env, FOXGLOVE_IMAGE_HZ), foxglove_entry(foxglove_port))
+    recorder = None
+    try:
+        with running(env, base_dir, signals=signals) as runner:
+            if recording is not None:
+                recorder = recorder_of(runner.observers)
+                recorder.on_failure = runner.request_stop  # the dataset cannot be written: stop there
+            if foxglove_port is not None and not quiet:
+                _print_foxglove(runner.observers)
+            _log.info("running", deployment=env.name, rate_hz=env.rate_hz, skill=env.vla.id, robot=env.hal.robot_id)
+            if recording is not None:
+                runner.episode_start(recording.task)
+            with LiveStatus(runner, sys.stderr, title=env.name):
+                result = runner.run(max_ticks, duration_s=duration)
+            if recording is not None:
+                runner.episode_end(success=result.stop_reason in _SUCCESSFUL_STOPS)
+        if recorder is not None:  # closed with the runner: every tick is written, the report is final
+            result.metadata["recording"] = recorder.report()
+    except ROSStopRequested as exc:
+        _log.info("stopped before the first tick; everything started was closed", reason=exc.reason)
+        return stopped_before_start(env, exc)
+    finally:
+        if recorder is not None and not quiet:
+            click.echo(recording_summary(recorder), err=True)
     if recorder is not None and recorder.failure is not None:
         raise ROSRuntimeError(str(recorder.failure))
     return result
+
+
+def _print_foxglove(observers: Sequence[TickObserver]) -> None:
+    """Where the live Foxglove view is served (bound when the runner started it)."""
+    from openral_runner.bridges.foxglove import FoxgloveSink  # noqa: PLC0415 (the 'foxglove' extra)
+
+    for sink in observers:
+        if isinstance(sink, FoxgloveSink) and sink.port is not None:
+            click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
 
 
 @cli.command()

@@ -15,19 +15,30 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 import structlog
 
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.keys import KeyCommand, KeyReader
-from openral_cli.recording import MCAP_OPTION, VCODEC_OPTION, build_recorder, build_rosbag, with_thumbnails
+from openral_cli.recording import (
+    MCAP_OPTION,
+    VCODEC_OPTION,
+    dataset_entry,
+    recorder_of,
+    rosbag_entry,
+    with_observers,
+    with_thumbnails,
+)
 from openral_cli.session import STOP_EXIT_CODES, command_span, running
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
 from openral_core import RobotEnvironment, ROSRuntimeError, ROSStopRequested, StopReason
 from openral_runner.hardware import HardwareRunner
+
+if TYPE_CHECKING:
+    from openral_dataset.recorder import RolloutRecorder
 
 _log = structlog.get_logger("openral")
 
@@ -113,18 +124,15 @@ def record(
         ):
             env = RobotEnvironment.from_yaml(config_path, field="--config")
             task_list = list(tasks) or [env.task.instruction or ""]
-            recorder = build_recorder(env, dataset_out, resume=resume, vcodec=vcodec)
-            observers = []
+            env = with_observers(env, dataset_entry(dataset_out, resume=resume, vcodec=vcodec), first=True)
             if rosbag is not None:
-                env = with_thumbnails(env)
-                observers.append(build_rosbag(env, rosbag, deployment=config_path))
+                env = with_observers(with_thumbnails(env), rosbag_entry(rosbag, deployment=config_path))
             keys = _Keys()
             totals = _Totals()
+            recorder: RolloutRecorder | None = None
             try:
-                with (
-                    KeyReader(keys),
-                    running(env, config_path.parent, signals=signals, recorder=recorder, observers=observers) as runner,
-                ):
+                with KeyReader(keys), running(env, config_path.parent, signals=signals) as runner:
+                    recorder = recorder_of(runner.observers)
                     recorder.on_failure = runner.request_stop  # a write failure ends the episode under way
                     _record_episodes(
                         runner,
@@ -140,18 +148,19 @@ def record(
                     )
             except ROSStopRequested as exc:
                 totals.stop = StopReason(exc.reason)
-        _print_summary(totals, recorder)
-        if recorder.failure is not None:
-            raise ROSRuntimeError(str(recorder.failure))
+        if recorder is not None:  # None: stopped while starting, before the dataset was opened
+            _print_summary(totals, recorder)
+            if recorder.failure is not None:
+                raise ROSRuntimeError(str(recorder.failure))
         code = EXIT_OK if totals.stop is None else STOP_EXIT_CODES.get(totals.stop, EXIT_OK)
-        if recorder.errors:
+        if recorder is not None and recorder.errors:
             code = EXIT_RUNTIME
     raise SystemExit(code)
 
 
 def _record_episodes(
     runner: HardwareRunner,
-    recorder: Any,
+    recorder: RolloutRecorder,
     keys: _Keys,
     totals: _Totals,
     *,
@@ -241,7 +250,7 @@ def _count(totals: _Totals, result: Any, *, kept: bool) -> None:
     totals.missed_slots += result.missed_slots
 
 
-def _print_summary(totals: _Totals, recorder: Any) -> None:
+def _print_summary(totals: _Totals, recorder: RolloutRecorder) -> None:
     committed = [e for e in recorder.episodes if e.committed]
     frames = sum(e.frames for e in committed)
     fps = frames / totals.recorded_s if totals.recorded_s > 0 else 0.0

@@ -1,4 +1,4 @@
-"""The CLI's recording glue: a deployment's recorder, and ``openral dataset check``.
+"""The CLI's recording glue: the observer entries its flags stand for, the sim recorder, and ``openral dataset``.
 
 ``openral_dataset`` imports pyarrow and PyAV (the ``dataset`` extra); it is loaded only when a
 command asks for a recording.
@@ -6,10 +6,10 @@ command asks for a recording.
 
 from __future__ import annotations
 
-import importlib
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from PIL import Image
@@ -17,7 +17,11 @@ from PIL import Image
 from openral_cli.errors import exit_codes
 from openral_core import ObserverConfig, RobotEnvironment, ROSConfigError, SimEnvironment
 from openral_core.environment import THUMBNAILS_OBSERVER
-from openral_hal.manifests import load_robot_manifest
+from openral_observability.observer import TickObserver
+
+if TYPE_CHECKING:
+    from openral_dataset.recorder import RolloutRecorder
+    from openral_sim.env import EnvSpec
 
 MCAP_OPTION = click.option(
     "--mcap",
@@ -35,89 +39,81 @@ VCODEC_OPTION = click.option(
 )
 
 
-def build_recorder(env: RobotEnvironment, dataset_out: Path, *, resume: bool, vcodec: str) -> Any:
-    """A ``RolloutRecorder`` writing ``env``'s robot and cameras to ``dataset_out`` at the tick rate.
-
-    Raises:
-        ROSConfigError: The tick rate is not a whole number (a dataset's fps is), or the dataset
-            cannot be opened as asked.
-        ROSDependencyMissing: The ``dataset`` extra is not installed.
-    """
-    if not math.isclose(env.rate_hz, round(env.rate_hz)):
-        raise ROSConfigError(
-            f"a dataset records whole frames per second; the tick rate is {env.rate_hz:g} Hz",
-            field="rate_hz",
-            hint="use a whole number of Hz to record",
-        )
-    writer = importlib.import_module("openral_dataset.writer")
-    recorder_module = importlib.import_module("openral_dataset.recorder")
-    schema = importlib.import_module("openral_dataset.schema")
-    robot = load_robot_manifest(env.hal.robot_id)
-    cameras = [schema.CameraSpec(s.sensor_id, s.width or 0, s.height or 0) for s in env.sensors]
-    sink = writer.LeRobotDatasetSink(
-        dataset_out,
-        fps=round(env.rate_hz),
-        robot_type=robot.robot_id,
-        joint_names=robot.joint_names,
-        cameras=cameras,
-        vcodec=vcodec,
-        resume=resume,
-    )
-    return recorder_module.RolloutRecorder(sink, joint_names=robot.joint_names)
+def dataset_entry(root: Path, *, resume: bool, vcodec: str) -> ObserverConfig:
+    """The ``lerobot_dataset`` observer entry ``--dataset-out`` stands for (the path taken from the working folder)."""
+    params = {"root": str(root.expanduser().absolute()), "resume": resume, "vcodec": vcodec}
+    return ObserverConfig(id="lerobot_dataset", params=params, option="--dataset-out")
 
 
-def build_sim_recorder(scene: SimEnvironment, spec: Any, dataset_out: Path, *, resume: bool, vcodec: str) -> Any:
-    """A ``RolloutRecorder`` for simulated episodes: the env's state and action names, its object state, the cameras.
-
-    Raises:
-        ROSConfigError: The env's control rate is not a whole number, or the dataset cannot be opened.
-        ROSDependencyMissing: The ``dataset`` extra is not installed.
-    """
-    if not math.isclose(spec.control_hz, round(spec.control_hz)):
-        raise ROSConfigError(
-            f"a dataset records whole frames per second; {scene.env} steps at {spec.control_hz:g} Hz",
-            field="--dataset-out",
-        )
-    writer = importlib.import_module("openral_dataset.writer")
-    recorder_module = importlib.import_module("openral_dataset.recorder")
-    schema = importlib.import_module("openral_dataset.schema")
-    video = importlib.import_module("openral_dataset.video")
-    sink = writer.LeRobotDatasetSink(
-        dataset_out,
-        fps=round(spec.control_hz),
-        robot_type=scene.robot or scene.env_id or scene.env,
-        joint_names=list(spec.state_names),
-        action_names=list(spec.action_names),
-        environment_state_names=list(spec.environment_state_names),
-        cameras=[schema.CameraSpec(c.name, c.width, c.height) for c in scene.cameras],
-        vcodec=vcodec,
-        overflow=video.OverflowPolicy.WAIT,  # a simulation waits for its encoders: no frame is repeated
-        resume=resume,
-    )
-    return recorder_module.RolloutRecorder(sink, joint_names=list(spec.state_names))
+def rosbag_entry(path: Path, *, deployment: Path | None) -> ObserverConfig:
+    """The ``ros2_bag`` observer entry ``--mcap`` stands for, with the deployment file attached."""
+    params: dict[str, Any] = {"path": str(path.expanduser().absolute())}
+    if deployment is not None:
+        params["attach"] = str(deployment.absolute())
+    return ObserverConfig(id="ros2_bag", params=params, option="--mcap")
 
 
-def build_rosbag(env: RobotEnvironment, path: Path, *, deployment: Path | None) -> Any:
-    """A ``Ros2BagWriter`` for ``env``'s robot into ``path``, with the deployment file attached.
+def foxglove_entry(port: int) -> ObserverConfig:
+    """The ``foxglove`` observer entry ``--foxglove PORT`` stands for."""
+    return ObserverConfig(id="foxglove", params={"port": port}, option="--foxglove")
 
-    Raises:
-        ROSConfigError: The file exists or cannot be created.
-        ROSDependencyMissing: The ``dataset`` extra is not installed.
-    """
-    bag = importlib.import_module("openral_dataset.ros2_bag")
-    robot = load_robot_manifest(env.hal.robot_id)
-    return bag.Ros2BagWriter(path, joint_names=robot.joint_names, deployment=deployment)
+
+def with_observers(env: RobotEnvironment, *entries: ObserverConfig, first: bool = False) -> RobotEnvironment:
+    """``env`` with ``entries`` added to its ``observers:`` (before the file's own with ``first``)."""
+    observers = [*entries, *env.observers] if first else [*env.observers, *entries]
+    return env.model_copy(update={"observers": observers})
 
 
 def with_thumbnails(env: RobotEnvironment, rate_hz: float = 10.0) -> RobotEnvironment:
     """``env`` with the ``thumbnails`` observer (at ``rate_hz`` when it has none): what views and bags show."""
     if any(o.id == THUMBNAILS_OBSERVER for o in env.observers):
         return env
-    entry = ObserverConfig(id=THUMBNAILS_OBSERVER, params={"rate_hz": rate_hz})
-    return env.model_copy(update={"observers": [*env.observers, entry]})
+    return with_observers(env, ObserverConfig(id=THUMBNAILS_OBSERVER, params={"rate_hz": rate_hz}))
 
 
-def recording_summary(recorder: Any) -> str:
+def recorder_of(observers: Sequence[TickObserver]) -> RolloutRecorder:
+    """The dataset recorder a ``--dataset-out`` entry added to a runner's observers."""
+    from openral_dataset.recorder import RolloutRecorder  # noqa: PLC0415 (the 'dataset' extra, loaded when recording)
+
+    return next(o for o in observers if isinstance(o, RolloutRecorder))
+
+
+def build_sim_recorder(
+    scene: SimEnvironment, spec: EnvSpec, dataset_out: Path, *, resume: bool, vcodec: str
+) -> RolloutRecorder:
+    """A ``RolloutRecorder`` for simulated episodes: the env's state and action names, its object state, the cameras.
+
+    Raises:
+        ROSConfigError: The env's control rate is not a whole number, or the dataset cannot be opened.
+        ROSDependencyMissing: The ``dataset`` extra is not installed.
+    """
+    # The 'dataset' extra (pyarrow, PyAV), loaded only when a command records.
+    from openral_dataset.recorder import RolloutRecorder  # noqa: PLC0415
+    from openral_dataset.schema import CameraSpec  # noqa: PLC0415
+    from openral_dataset.video import OverflowPolicy  # noqa: PLC0415
+    from openral_dataset.writer import LeRobotDatasetSink  # noqa: PLC0415
+
+    if not math.isclose(spec.control_hz, round(spec.control_hz)):
+        raise ROSConfigError(
+            f"a dataset records whole frames per second; {scene.env} steps at {spec.control_hz:g} Hz",
+            field="--dataset-out",
+        )
+    sink = LeRobotDatasetSink(
+        dataset_out,
+        fps=round(spec.control_hz),
+        robot_type=scene.robot or scene.env_id or scene.env,
+        joint_names=list(spec.state_names),
+        action_names=list(spec.action_names),
+        environment_state_names=list(spec.environment_state_names),
+        cameras=[CameraSpec(c.name, c.width, c.height) for c in scene.cameras],
+        vcodec=vcodec,
+        overflow=OverflowPolicy.WAIT,  # a simulation waits for its encoders: no frame is repeated
+        resume=resume,
+    )
+    return RolloutRecorder(sink, joint_names=list(spec.state_names))
+
+
+def recording_summary(recorder: RolloutRecorder) -> str:
     """One line: episodes committed, frames, repeated frames and dropped ticks, and why recording stopped early."""
     committed = [e for e in recorder.episodes if e.committed]
     frames = sum(e.frames for e in committed)
@@ -140,7 +136,8 @@ def dataset() -> None:
 @click.option("--no-video", is_flag=True, help="Skip decoding the videos (faster; checks the tables only).")
 def check(root: Path, no_video: bool) -> None:
     """Validate a LeRobotDataset v3.0: layout, counters, index, frame grid, videos, orphans."""
-    checker = importlib.import_module("openral_dataset.check")
+    from openral_dataset import check as checker  # noqa: PLC0415 (the 'dataset' extra)
+
     report = checker.check_dataset(root, decode_videos=not no_video)
     for note in report.notes:
         click.echo(f"note: {note}", err=True)
@@ -167,7 +164,8 @@ def check(root: Path, no_video: bool) -> None:
 def replay(ctx: click.Context, frame_path: str, out: Path) -> None:
     """Show one recorded row: its tick (state, actions, timings, stamps, trace id) and its camera frames."""
     with exit_codes(bool(ctx.obj["debug"])):
-        lookup = importlib.import_module("openral_dataset.replay")
+        from openral_dataset import replay as lookup  # noqa: PLC0415 (the 'dataset' extra)
+
         root, episode, frame = lookup.parse_frame_path(frame_path)
         found = lookup.lookup_frame(root, episode, frame)
         for name, value in found.row.items():

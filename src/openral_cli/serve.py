@@ -16,6 +16,7 @@ from openral_cli.signals import StopSignals
 from openral_core import RobotManifest, ROSConfigError, SimEnvironment
 from openral_hal.manifests import load_robot_manifest
 from openral_observability.setup import PROTOCOLS
+from openral_remote.allocator import keep_message_memory
 from openral_remote.config import DEFAULT_SERVER_LISTEN, ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import describe, model_hash
@@ -97,6 +98,7 @@ def serve(
         )
         # Loaded only here: the Zenoh server imports eclipse-zenoh (the 'remote' extra).
         server_module = importlib.import_module("openral_remote.server")
+        keep_message_memory()  # this process moves camera-sized messages: glibc keeps their memory for reuse
         robot, rate = _robot_and_rate(robot_id, scene_path, rate_hz)
         keys = PolicyKeys.of(robot.robot_id, name or skill_id)
         with command_span(

@@ -224,6 +224,9 @@ class ObserverConfig(_Block):
 
     id: str = Field(pattern=_ID_PATTERN)
     params: dict[str, Any] = Field(default_factory=dict)
+    option: str | None = None
+    """The command-line option this entry stands for (``--dataset-out``, ``--mcap``), set by the
+    CLI's shorthands: an observer that takes ``option=`` names it in its errors instead of the file's field."""
 
 
 class FaultPolicy(_Block):

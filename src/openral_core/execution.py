@@ -36,25 +36,31 @@ class FallbackSkill(BaseModel):
 
 
 class ExecutorConfig(BaseModel):
-    """Settings of the chunk executor, used for skills whose chunk size is above 1.
+    """Settings of the chunk executor, used for skills whose chunk size is above 1: each option's one definition.
 
     Rows are indexed by the tick of the observation a chunk was computed from; a new inference
     starts when the rows left fall to the recent p95 latency (in ticks) plus ``margin_ticks``.
+    ``ChunkedExecutor`` takes this model whole (``openral_rskill.executor``).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    seam: SeamMode = SeamMode.REPLACE
+    seam: SeamMode = Field(default=SeamMode.REPLACE, description="How a new chunk meets the rows left of the old.")
     crossfade_rows: int = Field(default=3, ge=1, description="Rows over which a crossfade blends.")
     ensemble_decay: float = Field(default=0.01, ge=0, description="ACT's m: weight exp(-m * i) for the i-th oldest.")
     margin_ticks: int = Field(default=1, ge=0, description="Ask for the next chunk this many ticks early.")
     min_rows: int = Field(default=1, ge=1, description="A chunk with fewer usable rows on arrival is discarded.")
     deadline_ticks: int = Field(default=30, ge=1, description="A result later than this after its request is dropped.")
     max_starved_ticks: int = Field(default=10, ge=0, description="Starved ticks (holding) before the fallback acts.")
-    fallback: StarvationFallback = StarvationFallback.HOLD
+    fallback: StarvationFallback = Field(
+        default=StarvationFallback.HOLD, description="After max_starved_ticks: hold the last target, skill or stop."
+    )
     fallback_skill: FallbackSkill | None = Field(default=None, description="The skill for fallback: skill.")
     executed_rows: int | None = Field(
         default=None, ge=1, description="Use at most this many rows of each chunk (the rest is dropped)."
+    )
+    warmup_requests: int = Field(
+        default=1, ge=0, description="First requests whose latency is not counted (compilation, caches)."
     )
     indexing: Literal["tick", "stale_start"] = Field(
         default="tick",

@@ -96,11 +96,13 @@ class RolloutRecorder(QueuedObserver):
         robot: RobotManifest,
         env: RobotEnvironment,
         base_dir: Path | None = None,
+        option: str | None = None,
     ) -> RolloutRecorder:
         """Plugin constructor (observer ``lerobot_dataset``): ``params`` are :class:`LeRobotDatasetParams`.
 
         Records ``robot``'s joints and one video per sensor of ``env`` at the tick rate. Opens
         nothing: the dataset folder is opened (created, or checked and resumed) by :meth:`start`.
+        ``option`` is the command-line option the entry stands for (``--dataset-out``): errors name it.
 
         Raises:
             ROSConfigError: A wrong parameter (named with the allowed keys); a tick rate that is not
@@ -113,15 +115,16 @@ class RolloutRecorder(QueuedObserver):
                 field="rate_hz",
                 hint="use a whole number of Hz to record",
             )
+        field = option or _ROOT_FIELD
         sink = LeRobotDatasetSink(
-            resolve_user_path(config.root, base_dir, field=_ROOT_FIELD),
+            resolve_user_path(config.root, base_dir, field=field),
             fps=round(env.rate_hz),
             robot_type=robot.robot_id,
             joint_names=robot.joint_names,
             cameras=[schema.CameraSpec(s.sensor_id, s.width or 0, s.height or 0) for s in env.sensors],
             vcodec=config.vcodec,
             resume=config.resume,
-            field=_ROOT_FIELD,
+            field=field,
             defer_open=True,
         )
         return cls(sink, joint_names=robot.joint_names)

@@ -60,6 +60,9 @@ class Ros2BagParams(BaseModel):
 
     path: str = Field(description="The .mcap file to create (relative to the deployment file's folder).")
     overwrite: bool = Field(default=False, description="Replace an existing file.")
+    attach: str | None = Field(
+        default=None, description="A file attached to the bag, such as the deployment (relative to its folder)."
+    )
 
 
 class Ros2BagWriter(QueuedObserver):
@@ -105,18 +108,28 @@ class Ros2BagWriter(QueuedObserver):
 
     @classmethod
     def from_config(
-        cls, params: Mapping[str, Any], *, robot: RobotManifest, env: Any, base_dir: Path | None = None
+        cls,
+        params: Mapping[str, Any],
+        *,
+        robot: RobotManifest,
+        env: Any,
+        base_dir: Path | None = None,
+        option: str | None = None,
     ) -> Ros2BagWriter:
         """Plugin constructor (observer ``ros2_bag``): ``params`` are ``path`` (relative to the deployment's
-        folder) and ``overwrite``. Camera images come from the runner's thumbnails (``thumbnail_hz``).
+        folder), ``overwrite`` and ``attach``. Camera images come from the ``thumbnails`` observer.
+        ``option`` is the command-line option the entry stands for (``--mcap``): errors name it.
 
         Raises:
             ROSConfigError: A wrong parameter, or the file could not be created there.
         """
         config = validate_model(Ros2BagParams, dict(params), field_prefix="observers[].params")
-        field = "observers[].params.path"
+        field = option or "observers[].params.path"
         path = resolve_user_path(config.path, base_dir, field=field)
-        return cls(path, joint_names=robot.joint_names, overwrite=config.overwrite, field=field)
+        attach = None
+        if config.attach is not None:
+            attach = resolve_user_path(config.attach, base_dir, field="observers[].params.attach")
+        return cls(path, joint_names=robot.joint_names, overwrite=config.overwrite, field=field, deployment=attach)
 
     def start(self) -> None:
         """Create the file and write the bag's header (the runner calls this at activation). Idempotent.

@@ -5,9 +5,12 @@ Outcomes of a request, each its own exception so the executor can count it:
 * a chunk;
 * **no reply at all**: nobody serves the key (the server died): :class:`ServerUnavailable`, and
   the server is marked down until its liveliness token returns;
-* Zenoh's ``Timeout`` error at the deadline (a hung server): :class:`RemoteTimeout`, a
+* no answer by the deadline (a hung server): :class:`~openral_remote.session.RemoteTimeout`, a
   ``TimeoutError`` (the executor counts it late);
-* ``superseded``: a newer request of ours overtook it: :class:`RemoteSuperseded`.
+* ``superseded``: a newer request of ours overtook it: :class:`RemoteSuperseded`;
+* another error of the server (its policy failed): :class:`~openral_remote.session.PeerError`.
+
+Requests go through :mod:`openral_remote.session`, which translates Zenoh's errors.
 
 A liveliness subscriber marks the server down the moment its token is withdrawn (a clean
 shutdown, a SIGKILL noticed by the kernel, or a silent link after the lease), without waiting for
@@ -37,13 +40,23 @@ from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
 from openral_remote.observation import world_fields
 from openral_remote.server import ERROR_SUPERSEDED
-from openral_remote.session import open_session
+from openral_remote.session import NoReply, PeerError, Querier, RemoteTimeout, open_session, request
 
 try:
     import zenoh
     from zenoh import shm
 except ImportError as exc:
     raise ROSDependencyMissing("zenoh", extra="remote", needed_for="remote inference over Zenoh") from exc
+
+__all__ = [
+    "SHAPE_FIELDS",
+    "PeerError",
+    "RemotePolicyClient",
+    "RemoteSuperseded",
+    "RemoteTimeout",
+    "ServerUnavailable",
+    "check_compatible",
+]
 
 _log = structlog.get_logger(__name__)
 
@@ -54,10 +67,6 @@ SHAPE_FIELDS = frozenset({"chunk_size", "action_names", "control_mode", "anchor"
 
 class ServerUnavailable(ROSUnavailable):
     """No policy server answers (none is alive, or a request got no reply)."""
-
-
-class RemoteTimeout(ROSUnavailable, TimeoutError):
-    """The server did not answer before the request's deadline."""
 
 
 class RemoteSuperseded(ROSUnavailable):
@@ -97,7 +106,7 @@ class RemotePolicyClient:
         self._alive = threading.Event()
         self._seq = itertools.count()
         self._session: Any = None
-        self._querier: Any = None
+        self._querier: Querier | None = None
         self._liveliness: Any = None
         self._shm: Any = None
         self._lock = threading.Lock()
@@ -113,7 +122,7 @@ class RemotePolicyClient:
         """
         self._session = open_session(self.zenoh)
         try:
-            self._querier = self._session.declare_querier(self.keys.infer, timeout=self.deadline_s)
+            self._querier = Querier(self._session, self.keys.infer, timeout_s=self.deadline_s)
             self._liveliness = self._session.liveliness().declare_subscriber(
                 self.keys.alive, self._on_liveliness, history=True
             )
@@ -134,10 +143,12 @@ class RemotePolicyClient:
     def close(self) -> None:
         """Undeclare everything and close the session. Idempotent."""
         self._up = False
-        for declared in (self._liveliness, self._querier):
-            if declared is not None:
-                declared.undeclare()
-        self._liveliness = self._querier = None
+        if self._liveliness is not None:
+            self._liveliness.undeclare()
+            self._liveliness = None
+        if self._querier is not None:
+            self._querier.close()
+            self._querier = None
         if self._session is not None:
             self._session.close()
             self._session = None
@@ -157,15 +168,14 @@ class RemotePolicyClient:
         session = self._session
         if session is None:
             raise ServerUnavailable("the client is closed")
-        for reply in session.get(self.keys.meta, timeout=timeout_s):
-            if reply.ok is not None:
-                try:
-                    return PolicyMeta.from_bytes(reply.ok.payload.to_bytes())
-                except ValueError as exc:
-                    raise ServerUnavailable(
-                        f"{self.keys.meta} answered something that is not policy meta: {exc}"
-                    ) from None
-        raise ServerUnavailable(f"no answer on {self.keys.meta}")
+        try:
+            data = request(session, self.keys.meta, timeout_s=timeout_s)
+        except ROSUnavailable as exc:
+            raise ServerUnavailable(f"no answer on {self.keys.meta} ({exc})") from None
+        try:
+            return PolicyMeta.from_bytes(data)
+        except ValueError as exc:
+            raise ServerUnavailable(f"{self.keys.meta} answered something that is not policy meta: {exc}") from None
 
     def infer(self, world: WorldState) -> np.ndarray:
         """The chunk the server computes from ``world``: ``(rows, dims)`` float64.
@@ -174,7 +184,7 @@ class RemotePolicyClient:
             ServerUnavailable: The server is down, or nobody answered (it is then marked down).
             RemoteTimeout: No answer before the deadline.
             RemoteSuperseded: The server dropped it for a newer request.
-            ROSUnavailable: The server answered with another error (its policy failed).
+            PeerError: The server answered with another error (its policy failed).
         """
         if not self._up:
             raise ServerUnavailable(f"the policy server at {self.keys.prefix} is down")
@@ -207,33 +217,37 @@ class RemotePolicyClient:
         if not self._up:
             raise ServerUnavailable(f"the policy server at {self.keys.prefix} is down")
         body = json.dumps({"seed": seed}).encode("utf-8")
-        for reply in self._session.get(self.keys.reset, payload=body, timeout=self.deadline_s):
-            if reply.ok is not None:
-                return
-            raise _error(reply.err.payload.to_bytes().decode("utf-8", "replace"), self.keys.reset)
-        raise ServerUnavailable(f"no answer on {self.keys.reset}")
+        try:
+            request(self._session, self.keys.reset, body, timeout_s=self.deadline_s)
+        except PeerError as exc:
+            raise _refusal(exc) from None
+        except NoReply:
+            raise ServerUnavailable(f"no answer on {self.keys.reset}") from None
 
     def _round_trip(self, payload: Any, attachment: bytes) -> tuple[np.ndarray, int]:
-        replies = self._querier.get(payload=payload, attachment=attachment)
-        for reply in replies:
-            if reply.ok is None:
-                raise _error(reply.err.payload.to_bytes().decode("utf-8", "replace"), self.keys.infer)
-            data = reply.ok.payload.to_bytes()
-            fields = decode(data)
-            chunk = fields.get("chunk")
-            if not isinstance(chunk, np.ndarray) or chunk.ndim != 2:
-                raise ROSUnavailable(f"{self.keys.infer} answered without a chunk")
-            meta = self.meta
-            if meta is not None and fields.get("model_hash") != meta.model_hash:
-                # Another model behind the same key without the server going away: judged as a return.
-                self._mark_down("the model changed")
+        querier = self._querier
+        if querier is None:
+            raise ServerUnavailable("the client is closed")
+        try:
+            data = querier.request(payload, attachment=attachment)
+        except PeerError as exc:
+            raise _refusal(exc) from None
+        except NoReply:
+            self._mark_down("no reply")
+            if self._alive.is_set():  # its token is still there: ask for its meta rather than wait for a change
                 self._start_recheck()
-                raise ServerUnavailable(f"{self.keys.infer} answered from another model; checking its meta")
-            return np.asarray(chunk, dtype=np.float64), len(data)
-        self._mark_down("no reply")
-        if self._alive.is_set():  # its token is still there: ask for its meta rather than wait for a change
+            raise ServerUnavailable(f"nobody answered on {self.keys.infer}: the policy server is gone") from None
+        fields = decode(data)
+        chunk = fields.get("chunk")
+        if not isinstance(chunk, np.ndarray) or chunk.ndim != 2:
+            raise ROSUnavailable(f"{self.keys.infer} answered without a chunk")
+        meta = self.meta
+        if meta is not None and fields.get("model_hash") != meta.model_hash:
+            # Another model behind the same key without the server going away: judged as a return.
+            self._mark_down("the model changed")
             self._start_recheck()
-        raise ServerUnavailable(f"nobody answered on {self.keys.infer}: the policy server is gone")
+            raise ServerUnavailable(f"{self.keys.infer} answered from another model; checking its meta")
+        return np.asarray(chunk, dtype=np.float64), len(data)  # a view of the reply: no copy, no list
 
     def _shared(self, message: bytes) -> Any:
         """The message in shared memory when a pool is there (same-host peers then read it in place)."""
@@ -315,12 +329,11 @@ class RemotePolicyClient:
         metrics.add(semconv.METRIC_REMOTE_SERVER_CHANGES, 1, {semconv.ATTR_REMOTE_OUTCOME: what})
 
 
-def _error(text: str, key: str) -> ROSUnavailable:
-    if text.startswith(ERROR_SUPERSEDED):
-        return RemoteSuperseded(f"{key}: superseded by a newer request")
-    if "timeout" in text.lower():
-        return RemoteTimeout(f"{key}: no answer before the deadline")
-    return ROSUnavailable(f"{key}: the server answered with an error: {text}")
+def _refusal(error: PeerError) -> ROSUnavailable:
+    """The server's error answer: superseded by a newer request of ours, or its own failure."""
+    if error.text.startswith(ERROR_SUPERSEDED):
+        return RemoteSuperseded(f"{error.key}: superseded by a newer request")
+    return error
 
 
 def _outcome(exc: ROSUnavailable) -> str:

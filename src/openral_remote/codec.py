@@ -166,7 +166,13 @@ def _blob(name: str, entry: dict[str, Any], payload: memoryview) -> memoryview:
     return payload[offset : offset + nbytes]
 
 
+_SCALARS: Final = frozenset({int, float, str, bool, type(None)})
+"""Values JSON always carries (``allow_nan``): nothing to check."""
+
+
 def _plain(name: str, value: Any) -> Any:
+    if type(value) in _SCALARS:
+        return value
     try:
         json.dumps(value, allow_nan=True)
     except (TypeError, ValueError) as exc:

@@ -10,7 +10,14 @@ from openral_core import ROSConfigError
 _SEGMENT = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
-def _segment(value: str, field: str) -> str:
+def segment(value: str, field: str) -> str:
+    """``value`` if it can be one segment of a key expression (no wildcard, no slash, not empty).
+
+    Every openral key is built from segments checked here.
+
+    Raises:
+        ROSConfigError: Naming ``field``, with the characters allowed.
+    """
     if not _SEGMENT.match(value):
         raise ROSConfigError(
             f"{value!r} cannot be part of a key expression",
@@ -37,7 +44,7 @@ class PolicyKeys:
     @classmethod
     def of(cls, robot: str, policy: str) -> PolicyKeys:
         """The keys of ``policy`` for ``robot`` (both checked: no wildcards, no slashes)."""
-        return cls(_segment(robot, "robot"), _segment(policy, "policy"))
+        return cls(segment(robot, "robot"), segment(policy, "policy"))
 
     @property
     def prefix(self) -> str:

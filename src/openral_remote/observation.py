@@ -79,13 +79,12 @@ def _put_frame(fields: dict[str, Any], jpeg: dict[str, int], frame: SensorFrame,
     if encoding in _COMPRESSED:
         assert frame.data is not None
         pixels = np.frombuffer(frame.data, dtype=np.uint8)
+    elif quality is not None and encoding in (FrameEncoding.RGB8, FrameEncoding.BGR8):
+        pixels = frame.as_rgb()  # JPEG takes RGB: a BGR camera's channels reordered by a view
+        encoding = FrameEncoding.RGB8
+        jpeg[key] = quality
     else:
         pixels = frame.as_array()
-        if quality is not None and encoding in (FrameEncoding.RGB8, FrameEncoding.BGR8):
-            if encoding is FrameEncoding.BGR8:
-                pixels = pixels[..., ::-1]
-                encoding = FrameEncoding.RGB8
-            jpeg[key] = quality
     fields[key] = pixels
     fields[f"{key}.meta"] = {
         "encoding": encoding.value,

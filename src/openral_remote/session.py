@@ -1,20 +1,55 @@
-"""Opening a Zenoh session from a :class:`~openral_remote.config.ZenohConfig`, errors translated."""
+"""Zenoh sessions from a :class:`~openral_remote.config.ZenohConfig`, and requests with a deadline.
+
+Zenoh's errors are translated here, once (as httpx maps its transport's exceptions). A request
+has one answer, or fails with one of three :class:`~openral_core.errors.ROSUnavailable`:
+
+* :class:`RemoteTimeout` (also a ``TimeoutError``): no answer before the deadline. Zenoh reports
+  it as a reply error whose payload is the text ``Timeout``;
+* :class:`PeerError`: the peer answered with an error (its text in :attr:`PeerError.text`);
+* :class:`NoReply`: nobody answered: nothing serves the key.
+
+Opening a session changes nothing else in the process (allocator tuning is
+:func:`openral_remote.allocator.keep_message_memory`, called by the entry points that want it).
+"""
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import functools
 import json
+from collections.abc import Iterable
 from typing import Any
 
-from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError
+from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError, ROSUnavailable
 from openral_remote.config import ZenohConfig
 
 try:
     import zenoh
 except ImportError as exc:
     raise ROSDependencyMissing("zenoh", extra="remote", needed_for="remote inference over Zenoh") from exc
+
+_ZENOH_TIMEOUT = "timeout"
+"""What Zenoh's own reply error says at a query's deadline (compared without case or spaces)."""
+
+
+class RemoteTimeout(ROSUnavailable, TimeoutError):
+    """The peer did not answer before the request's deadline."""
+
+
+class PeerError(ROSUnavailable):
+    """The peer answered the request with an error.
+
+    Attributes:
+        key: The key asked.
+        text: What the peer said (decoded as UTF-8, undecodable bytes replaced).
+    """
+
+    def __init__(self, key: str, text: str) -> None:
+        super().__init__(f"{key}: the peer answered with an error: {text}")
+        self.key = key
+        self.text = text
+
+
+class NoReply(ROSUnavailable):
+    """Nobody answered the request: nothing serves the key (or what did is gone)."""
 
 
 def zenoh_config(config: ZenohConfig) -> Any:
@@ -28,40 +63,14 @@ def zenoh_config(config: ZenohConfig) -> Any:
     return settings
 
 
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
-
-
-@functools.cache
-def keep_message_memory() -> bool:
-    """Keep freed large buffers in the process (glibc) instead of returning them to the kernel after each message.
-
-    A camera observation is about a megabyte. By default glibc serves such a block with a fresh
-    ``mmap`` (or trims a thread arena's top) and gives it back on free, so every message pays
-    a few hundred page faults on both ends (measured here: 1.2 ms of a 6 ms round trip). Raising
-    the mmap and trim thresholds, as real-time guides advise, makes the blocks reused. Once per
-    process; ``False`` where the C library is not glibc.
-    """
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return False
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    return bool(mallopt(_M_MMAP_THRESHOLD, 64 << 20)) and bool(mallopt(_M_TRIM_THRESHOLD, 256 << 20))
-
-
 def open_session(config: ZenohConfig) -> Any:
-    """An open Zenoh session (and, once per process, :func:`keep_message_memory`).
+    """An open Zenoh session.
 
     Raises:
         ROSConfigError: Zenoh refused the settings, or cannot listen on an endpoint (in use, not local).
         ROSRuntimeError: The session could not be opened for another reason.
     """
     settings = zenoh_config(config)
-    keep_message_memory()
     try:
         return zenoh.open(settings)
     except Exception as exc:
@@ -71,3 +80,67 @@ def open_session(config: ZenohConfig) -> Any:
                 f"cannot listen on {config.listen}: {text}", field="listen", hint="pick a free port or a local address"
             ) from exc
         raise ROSRuntimeError(f"cannot open a Zenoh session ({config.mode}, connect {config.connect}): {text}") from exc
+
+
+def request(
+    session: Any, key: str, payload: bytes | None = None, *, timeout_s: float, attachment: bytes | None = None
+) -> bytes:
+    """Ask ``key`` once and return the first answer's payload.
+
+    Args:
+        session: An open Zenoh session.
+        key: The key expression asked (a queryable's).
+        payload: The request's body, if any.
+        timeout_s: The deadline, from now.
+        attachment: Bytes sent beside the payload (trace context, a client's id).
+
+    Raises:
+        RemoteTimeout: No answer before the deadline.
+        PeerError: The peer answered with an error.
+        NoReply: Nobody answered.
+    """
+    return answer(session.get(key, payload=payload, attachment=attachment, timeout=timeout_s), key)
+
+
+class Querier:
+    """Requests to one key with one deadline, over a Zenoh querier (the key is resolved once, not per request).
+
+    Args:
+        session: An open Zenoh session.
+        key: The key expression asked.
+        timeout_s: Each request's deadline.
+    """
+
+    def __init__(self, session: Any, key: str, *, timeout_s: float) -> None:
+        self.key = key
+        self._querier: Any = session.declare_querier(key, timeout=timeout_s)
+
+    def request(self, payload: Any = None, *, attachment: bytes | None = None) -> bytes:
+        """Ask once; ``payload`` may be ``bytes`` or a ``zenoh.ZBytes`` (shared memory). As :func:`request`."""
+        return answer(self._querier.get(payload=payload, attachment=attachment), self.key)
+
+    def close(self) -> None:
+        """Undeclare the querier."""
+        self._querier.undeclare()
+
+
+def answer(replies: Iterable[Any], key: str) -> bytes:
+    """The payload of the first of ``replies`` (what a Zenoh ``get`` yields), or its error translated.
+
+    Raises:
+        RemoteTimeout: Zenoh's deadline passed first.
+        PeerError: The peer answered with an error.
+        NoReply: There was no reply.
+    """
+    for reply in replies:
+        ok = reply.ok
+        if ok is not None:
+            return bytes(ok.payload.to_bytes())
+        text = reply.err.payload.to_bytes().decode("utf-8", "replace")
+        if text.strip().lower() == _ZENOH_TIMEOUT:
+            raise RemoteTimeout(f"{key}: no answer before the deadline")
+        raise PeerError(key, text)
+    raise NoReply(f"nobody answered on {key}")
+
+
+__all__ = ["NoReply", "PeerError", "Querier", "RemoteTimeout", "answer", "open_session", "request", "zenoh_config"]

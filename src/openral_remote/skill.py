@@ -3,9 +3,9 @@
 On the robot it is a skill like any other: its chunk size, action names, representation (so its
 rows are anchored as they would be locally) and observation come from the server's ``meta``, read
 once when the skill is built (the server must be up by then, within ``connect_timeout_s``). The
-chunk executor calls :meth:`step` on its worker thread, never on the tick; while the server is
-down (:meth:`available` is ``False``) the executor's fallback acts: ``hold``, a local ``skill``
-(e.g. an ONNX policy) or a safe ``stop``, configured under ``executor:``.
+chunk executor asks for each chunk (one array, as decoded) on its worker thread, never on the
+tick; while the server is down (:meth:`available` is ``False``) the executor's fallback acts:
+``hold``, a local ``skill`` (e.g. an ONNX policy) or a safe ``stop``, configured under ``executor:``.
 """
 
 from __future__ import annotations
@@ -13,13 +13,17 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, Self
 
+import numpy as np
+
 from openral_core import Action, RobotManifest, ROSConfigError, RSkillInfo, WorldState
+from openral_remote.allocator import keep_message_memory
 from openral_remote.client import SHAPE_FIELDS, RemotePolicyClient, check_compatible
 from openral_remote.config import RemotePolicyParams
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
 from openral_rskill.anchoring import Anchor
 from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.chunks import ChunkRequest
 
 SKILL_ID = "remote_policy"
 
@@ -56,6 +60,12 @@ class RemotePolicySkill(RSkillBase):
 
     @classmethod
     def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> Self:
+        """Build the skill for a deployment; the process keeps its message memory from here on.
+
+        A robot on a remote policy moves a camera-sized request every tick: glibc is told to keep
+        that memory for reuse (:func:`~openral_remote.allocator.keep_message_memory`), once per process.
+        """
+        keep_message_memory()
         return cls(robot, validate_params(RemotePolicyParams, params, skill_id=SKILL_ID), rate_hz=rate_hz)
 
     @classmethod
@@ -104,12 +114,17 @@ class RemotePolicySkill(RSkillBase):
         if self.client.available():
             self.client.reset(self.episode_seed)
 
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        """The server's chunk for the request's observation: the decoded array, as it came."""
+        return self.client.infer(request.world)
+
     def _step_impl(self, world_state: WorldState) -> Action:
-        rows = self.client.infer(world_state)
+        """The first row of the server's chunk for ``world_state``."""
+        row = self.client.infer(world_state)[0]
         return Action(
             control_mode=self.meta.control_mode,
             joint_names=self.meta.action_names,
-            targets=rows.tolist(),
+            targets=[row.tolist()],
             stamp_ns=world_state.stamp_ns,
             skill_id=SKILL_ID,
         )

@@ -17,11 +17,13 @@ from typing import Any
 import numpy as np
 
 from openral_core import Action, RSkillInfo, WorldState
+from openral_remote.allocator import keep_message_memory
 from openral_remote.config import ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
 from openral_rskill.anchoring import AnchorSpec
 from openral_rskill.base import RSkillBase
+from openral_rskill.chunks import ChunkRequest
 
 ROBOT = "test_robot"
 POLICY = "chunks"
@@ -81,10 +83,13 @@ class ChunkSkill(RSkillBase):
     def _on_reset(self) -> None:
         self.seeds.append(self.episode_seed)
 
-    def _step_impl(self, world_state: WorldState) -> Action:
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
         if self.delay_s:
             time.sleep(self.delay_s)
-        return Action(joint_names=self.action_names, targets=self.rows(world_state).tolist())
+        return self.rows(request.world)
+
+    def _step_impl(self, world_state: WorldState) -> Action:
+        return Action(joint_names=self.action_names, targets=[self._chunk_impl(ChunkRequest(world_state))[0].tolist()])
 
 
 def chunk_meta(skill: ChunkSkill, *, rate_hz: float, model_hash: str) -> PolicyMeta:
@@ -119,6 +124,7 @@ def serve(args: Any) -> None:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    keep_message_memory()  # as 'openral serve' does
     zenoh = ZenohConfig(listen=[args.listen], lease_ms=args.lease_ms)
     with PolicyServer(skill, keys=PolicyKeys.of(ROBOT, POLICY), zenoh=zenoh, meta=meta):
         stop.wait()

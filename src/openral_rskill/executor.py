@@ -8,11 +8,10 @@ keeps the tick thread from ever waiting on it:
 * **The worker owns the policy.** One thread runs inference and ``reset`` in the order they were
   asked for, so a reset never runs concurrently with inference. One request is in flight at a time.
 * **Rows are indexed by tick.** A request carries the tick of its observation ``k``; row ``j``
-  of its chunk is for tick ``k + j``. When it arrives, its rows are anchored as absolute targets
-  at tick ``k`` (:mod:`openral_rskill.anchoring`), the rows for ticks already past are skipped, and
-  a chunk with fewer than ``min_rows`` usable rows is discarded and counted.
-* **Seams**: the new chunk ``replace``s the old rows, ``crossfade``s into them over ``k`` rows, or
-  is ``ensemble``d with them (ACT's exponential weights, oldest first).
+  of its chunk is for tick ``k + j``. On the worker its rows are anchored as absolute targets at
+  tick ``k`` (:mod:`openral_rskill.anchoring`); when it arrives it is placed in the tick-indexed
+  :class:`~openral_rskill.chunk_buffer.ChunkBuffer` (rows for past ticks skipped, seams, a chunk
+  with fewer than ``min_rows`` usable rows discarded and counted).
 * **When to infer**: once the rows left fall to the recent p95 inference latency in ticks
   (warm-up excluded) plus ``margin_ticks``.
 * **Starvation is explicit**: with no row for this tick the last target is held (counted); after
@@ -29,6 +28,10 @@ keeps the tick thread from ever waiting on it:
 Virtual latency (a simulation's): with ``virtual_delay`` the policy runs inline when asked and its
 chunk becomes usable exactly ``virtual_delay(request)`` ticks later: the executor's effect on
 success is then measured reproducibly, whatever the machine.
+
+Every option is a field of :class:`~openral_core.execution.ExecutorConfig`, taken whole; what
+comes from the skill (its chunk, reset, anchor, availability, identity) is given by
+:meth:`ChunkedExecutor.for_skill`.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from __future__ import annotations
 import collections
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Final
@@ -46,10 +49,12 @@ import structlog
 from opentelemetry import trace
 from opentelemetry.trace import Span
 
-from openral_core import Action, ControlMode, SeamMode, StarvationFallback, WorldState
+from openral_core import Action, ControlMode, ExecutorConfig, StarvationFallback, WorldState
 from openral_observability import metrics, semconv, tracer
 from openral_observability.deferred import TickTelemetry
 from openral_rskill.anchoring import AbsoluteAnchor, Anchor, UnanchoredRows
+from openral_rskill.base import RSkillBase
+from openral_rskill.chunk_buffer import ChunkBuffer
 from openral_rskill.chunks import ChunkRequest
 
 _log = structlog.get_logger(__name__)
@@ -133,94 +138,57 @@ class ChunkedExecutor:
 
     Args:
         infer: The policy's inference (on the worker thread, or inline under virtual latency).
-        reset: The policy's reset (on the worker, between inferences).
+        config: The executor's settings, whole (seams, margins, deadlines, starvation, indexing).
         action_names: Names of the action's dimensions (the ``Action``'s joint names).
-        chunk_size: Rows per chunk the policy returns.
+        reset: The policy's reset (on the worker, between inferences).
         anchor: How rows become targets and targets commands (absolute by default).
-        seam: How a new chunk meets the rows left of the old one.
-        crossfade_rows: Rows over which ``crossfade`` blends.
-        ensemble_decay: ACT's ``m``: weights ``exp(-m * i)`` for the i-th oldest chunk.
-        margin_ticks: Ask for the next chunk this many ticks before the expected need.
-        min_rows: A chunk with fewer usable rows on arrival is discarded.
-        deadline_ticks: A result arriving more than this many ticks after its request is dropped.
-        max_starved_ticks: Starved ticks in a row after which ``fallback`` decides.
-        fallback: ``hold``, ``skill`` or ``stop``.
-        warmup_requests: First requests whose latency does not count (compilation, caches).
-        virtual_delay: Simulation only: ticks from request to use, per request id.
-        skill_id: Put on the actions.
-        control_mode: Put on the actions.
-        executed_rows: Use at most the first rows of each chunk (the rest is dropped).
-        stale_start: Run each chunk from its first row when it arrives, rows sent as they are
-            (no anchoring, no skipping): the naive executor, kept to measure what indexing by tick gains.
         available: Whether the policy's source can be asked now (a remote server's liveliness);
             ``None``: always. Called once per tick on the tick thread, so it must be O(1).
         observation_steps: Observations each request carries, the current one included: the
             executor keeps the earlier ticks' (references, O(1) per tick) for policies that read a history.
+        skill_id: Put on the actions.
+        control_mode: Put on the actions.
+        virtual_delay: Simulation only: ticks from request to use, per request index in the episode
+            (a public attribute: a simulation sets each episode's).
     """
 
     def __init__(
         self,
         infer: PolicyFn,
+        config: ExecutorConfig | None = None,
         *,
+        action_names: Sequence[str],
         reset: Callable[[], None] | None = None,
-        action_names: list[str],
-        chunk_size: int,
         anchor: Anchor | None = None,
-        seam: SeamMode = SeamMode.REPLACE,
-        crossfade_rows: int = 3,
-        ensemble_decay: float = 0.01,
-        margin_ticks: int = 1,
-        min_rows: int = 1,
-        deadline_ticks: int = 30,
-        max_starved_ticks: int = 10,
-        fallback: StarvationFallback = StarvationFallback.HOLD,
-        warmup_requests: int = 1,
-        virtual_delay: Callable[[int], int] | None = None,
-        skill_id: str | None = None,
-        control_mode: ControlMode = ControlMode.JOINT_POSITION,
-        executed_rows: int | None = None,
-        stale_start: bool = False,
         available: Callable[[], bool] | None = None,
         observation_steps: int = 1,
+        skill_id: str | None = None,
+        control_mode: ControlMode = ControlMode.JOINT_POSITION,
+        virtual_delay: Callable[[int], int] | None = None,
     ) -> None:
-        if chunk_size < 1:
-            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
-        self._infer = infer
-        self._reset_policy = reset
-        self.action_names = list(action_names)
-        self.chunk_size = chunk_size
-        self.anchor: Anchor = anchor or AbsoluteAnchor()
-        self.seam = SeamMode(seam)
-        self.crossfade_rows = max(1, crossfade_rows)
-        self.ensemble_decay = ensemble_decay
-        self.margin_ticks = margin_ticks
-        self.min_rows = max(1, min_rows)
-        self.deadline_ticks = deadline_ticks
-        self.max_starved_ticks = max_starved_ticks
-        self.fallback = StarvationFallback(fallback)
-        self.warmup_requests = warmup_requests
-        self.virtual_delay = virtual_delay
-        self.skill_id = skill_id
-        self.control_mode = control_mode
-        self.executed_rows = executed_rows
-        self.stale_start = stale_start or isinstance(self.anchor, UnanchoredRows)
-        self._available = available
-        self._history: collections.deque[WorldState] = collections.deque(maxlen=max(0, observation_steps - 1))
-        if isinstance(self.anchor, UnanchoredRows) and not stale_start:
+        config = config or ExecutorConfig()
+        anchor = anchor or AbsoluteAnchor()
+        if isinstance(anchor, UnanchoredRows) and config.indexing != "stale_start":
             _log.warning(
                 "the policy's rows cannot be anchored at their observation: each chunk runs from its first row "
                 "when it arrives (stale start), however late",
                 skill=skill_id,
             )
-        if self.stale_start:
-            self.anchor = AbsoluteAnchor()
+            config = config.model_copy(update={"indexing": "stale_start"})
+        self.config = config
+        self._infer = infer
+        self._reset_policy = reset
+        self.action_names = list(action_names)
+        self.anchor: Anchor = AbsoluteAnchor() if config.indexing == "stale_start" else anchor
+        self.virtual_delay = virtual_delay
+        self.skill_id = skill_id
+        self.control_mode = control_mode
+        self._available = available
+        self._history: collections.deque[WorldState] = collections.deque(maxlen=max(0, observation_steps - 1))
+        self._buffer = ChunkBuffer(len(self.action_names), config)
         self.stats = ExecutorStats()
         self._epoch = 0
         self._next_id = 0
-        self._base_tick = 0
-        self._targets = np.zeros((0, len(self.action_names)))
-        self._ensemble: list[np.ndarray] = []
-        """ENSEMBLE: per buffered tick, the rows every chunk predicted for it, oldest first."""
         self._held: np.ndarray | None = None
         self._starved_in_row = 0
         self._in_flight: _Request | None = None
@@ -238,6 +206,34 @@ class ChunkedExecutor:
             self._thread = threading.Thread(target=self._work, name="openral-chunk-worker", daemon=True)
             self._thread.start()
 
+    @classmethod
+    def for_skill(
+        cls,
+        skill: RSkillBase,
+        config: ExecutorConfig | None = None,
+        *,
+        action_names: Sequence[str],
+        virtual_delay: Callable[[int], int] | None = None,
+    ) -> ChunkedExecutor:
+        """The executor of a chunking skill: its :meth:`~RSkillBase.step_chunk` runs on the worker.
+
+        The skill gives its reset, anchor, availability, observation history and identity; under
+        ``virtual_delay`` it runs inline when asked.
+        """
+        info = skill.info
+        return cls(
+            skill.step_chunk,
+            config,
+            action_names=action_names,
+            reset=skill.reset,
+            anchor=skill.action_anchor(),
+            available=skill.available,
+            observation_steps=info.observation_steps,
+            skill_id=info.skill_id,
+            control_mode=info.control_mode,
+            virtual_delay=virtual_delay,
+        )
+
     # -- the tick thread -------------------------------------------------------------------
 
     def step(self, tick_idx: int, world: WorldState, telemetry: TickTelemetry | None = None) -> Decision:
@@ -249,14 +245,17 @@ class ChunkedExecutor:
         """
         self._telemetry = telemetry
         self._take_arrivals(tick_idx)
+        history = self._history
         if self._available is not None and not self._available():
-            self._remember(world)
+            if history.maxlen:
+                history.append(world)
             return self._unavailable(world)
         self._maybe_request(tick_idx, world)
-        self._remember(world)
+        if history.maxlen:
+            history.append(world)
         if self.virtual_delay is not None and self._done:
             self._take_arrivals(tick_idx)  # a virtual delay of 0: this tick's own chunk
-        row = self._row_for(tick_idx)
+        row = self._buffer.row_for(tick_idx)
         if row is not None:
             self._starved_in_row = 0
             self._held = row
@@ -266,25 +265,22 @@ class ChunkedExecutor:
         self._starved_in_row += 1
         self.stats.starved_ticks += 1
         self._count(semconv.METRIC_EXECUTOR_STARVED_TICKS)
-        if self._starved_in_row > self.max_starved_ticks and self.fallback is not StarvationFallback.HOLD:
-            return Decision(Outcome.FALLBACK if self.fallback is StarvationFallback.SKILL else Outcome.STOP)
+        fallback = self.config.fallback
+        if self._starved_in_row > self.config.max_starved_ticks and fallback is not StarvationFallback.HOLD:
+            return Decision(Outcome.FALLBACK if fallback is StarvationFallback.SKILL else Outcome.STOP)
         return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
-
-    def _remember(self, world: WorldState) -> None:
-        if self._history.maxlen:
-            self._history.append(world)
 
     def _unavailable(self, world: WorldState) -> Decision:
         """The source is down: its rows are dropped and the fallback decides now."""
-        self._targets = self._targets[:0]
-        self._ensemble = []
+        self._buffer.clear()
         self.stats.unavailable_ticks += 1
         self._count(semconv.METRIC_EXECUTOR_UNAVAILABLE_TICKS)
         # Past the starvation allowance: once the source is back, the fallback acts until a row arrives.
-        self._starved_in_row = self.max_starved_ticks + 1
-        if self.fallback is StarvationFallback.SKILL:
+        self._starved_in_row = self.config.max_starved_ticks + 1
+        fallback = self.config.fallback
+        if fallback is StarvationFallback.SKILL:
             return Decision(Outcome.FALLBACK)
-        if self.fallback is StarvationFallback.STOP:
+        if fallback is StarvationFallback.STOP:
             return Decision(Outcome.STOP)
         if self._held is None:
             return Decision(Outcome.NONE)
@@ -300,8 +296,7 @@ class ChunkedExecutor:
         self._epoch += 1
         self._epoch_first_id = self._next_id
         reset = run or self._reset_policy
-        self._targets = np.zeros((0, len(self.action_names)))
-        self._ensemble = []
+        self._buffer.clear()
         self._held = None
         self._starved_in_row = 0
         self._in_flight = None
@@ -335,7 +330,7 @@ class ChunkedExecutor:
     @property
     def rows_left(self) -> int:
         """Rows buffered for the current tick and after it (as of the last step)."""
-        return len(self._targets)
+        return len(self._buffer)
 
     def latency_ticks_p95(self) -> int:
         """The recent p95 inference latency in ticks (1 before any measurement)."""
@@ -346,8 +341,7 @@ class ChunkedExecutor:
     def _maybe_request(self, tick_idx: int, world: WorldState) -> None:
         if self._in_flight is not None or self._abandoned:
             return  # one request at a time, a given-up one included: it still occupies the worker
-        ahead = self._base_tick + len(self._targets) - tick_idx
-        if ahead > self.latency_ticks_p95() + self.margin_ticks:
+        if self._buffer.ahead(tick_idx) > self._p95 + self.config.margin_ticks:
             return
         request = _Request(self._next_id, self._epoch, tick_idx, world, history=tuple(self._history))
         self._next_id += 1
@@ -364,11 +358,11 @@ class ChunkedExecutor:
             index_in_epoch = request.request_id - self._epoch_first_id
             request.ready_tick = tick_idx + max(0, int(self.virtual_delay(index_in_epoch)))
             request.expected_delay = request.ready_tick - tick_idx
-            request.prefix = self._rows_from(tick_idx)[: request.expected_delay]
+            request.prefix = self._buffer.rows_from(tick_idx)[: request.expected_delay]
             self._run(request)
             return
         request.expected_delay = self.latency_ticks_p95()
-        request.prefix = self._rows_from(tick_idx)[: request.expected_delay]  # what runs while it infers
+        request.prefix = self._buffer.rows_from(tick_idx)[: request.expected_delay]  # what runs while it infers
         with self._wake:
             self._jobs.append(request)
             self._wake.notify()
@@ -386,7 +380,7 @@ class ChunkedExecutor:
                 self._in_flight = None
             self._integrate(request, tick_idx)
         in_flight = self._in_flight
-        if in_flight is not None and tick_idx - in_flight.obs_tick > self.deadline_ticks:
+        if in_flight is not None and tick_idx - in_flight.obs_tick > self.config.deadline_ticks:
             # Past its deadline: give up on it (another request may go out); if it ever arrives it is dropped.
             self.stats.results_late += 1
             self._abandoned.add(in_flight.request_id)
@@ -399,29 +393,23 @@ class ChunkedExecutor:
         if reason is not None:
             self._chunk_span(request, tick_idx, {semconv.ATTR_EXECUTOR_DISCARDED: reason})
             return
-        assert request.rows is not None
-        if request.request_id >= self.warmup_requests:
+        if request.request_id >= self.config.warmup_requests:
             self._latencies.append(delay)
             ordered = sorted(self._latencies)  # a few dozen ints: cheaper than numpy on the tick thread
             self._p95 = ordered[math.ceil(0.95 * len(ordered)) - 1]
         self.stats.delays_ticks.append(delay)
-        targets = request.targets
-        assert targets is not None
-        if self.executed_rows is not None:
-            targets = targets[: self.executed_rows]
-        skipped = 0 if self.stale_start else min(delay, len(targets))
-        usable = targets[skipped:]
-        self.stats.rows_skipped += skipped
+        assert request.targets is not None
+        placed = self._buffer.place(request.targets, obs_tick=request.obs_tick, tick=tick_idx)
+        self.stats.rows_skipped += placed.skipped
         outcome: dict[str, Any] = {
-            semconv.ATTR_EXECUTOR_ROWS_SKIPPED: skipped,
-            semconv.ATTR_EXECUTOR_ROWS_USED: len(usable) if len(usable) >= self.min_rows else 0,
+            semconv.ATTR_EXECUTOR_ROWS_SKIPPED: placed.skipped,
+            semconv.ATTR_EXECUTOR_ROWS_USED: placed.used,
         }
-        if len(usable) < self.min_rows:
+        if placed.refused:
             self.stats.chunks_discarded += 1
             outcome[semconv.ATTR_EXECUTOR_DISCARDED] = "too_few_rows"
         else:
             self.stats.chunks_used += 1
-            self._merge(usable, tick_idx)
         self._chunk_span(request, tick_idx, outcome)
 
     def _chunk_span(self, request: _Request, tick_idx: int, outcome: dict[str, Any]) -> None:
@@ -464,59 +452,13 @@ class ChunkedExecutor:
             self.stats.errors += 1
             _log.warning("chunk inference failed", error=str(request.error), request=request.request_id)
             return "error"
-        if delay > self.deadline_ticks:
+        if delay > self.config.deadline_ticks:
             self.stats.results_late += 1
             return "late"
         rows = request.rows
         if rows is None or rows.ndim != 2 or rows.shape[1] != len(self.action_names):
             self.stats.errors += 1
             return "bad_shape"
-        return None
-
-    def _merge(self, usable: np.ndarray, tick_idx: int) -> None:
-        old = self._rows_from(tick_idx)
-        if self.seam is SeamMode.REPLACE or len(old) == 0:
-            merged = usable
-            self._ensemble = [usable[i : i + 1] for i in range(len(usable))] if self.seam is SeamMode.ENSEMBLE else []
-        elif self.seam is SeamMode.CROSSFADE:
-            merged = np.array(usable, copy=True)
-            blend = min(self.crossfade_rows, len(old), len(usable))
-            for i in range(blend):
-                alpha = (i + 1) / (blend + 1)
-                merged[i] = (1 - alpha) * old[i] + alpha * usable[i]
-        else:
-            predictions = self._ensemble[tick_idx - self._base_tick :] if self._ensemble else []
-            stacks = []
-            for i in range(len(usable)):
-                previous = predictions[i] if i < len(predictions) else np.zeros((0, usable.shape[1]))
-                stacks.append(np.vstack([previous, usable[i : i + 1]]))
-            self._ensemble = stacks
-            merged = np.array([self._ensembled(stack) for stack in stacks])
-        self._base_tick = tick_idx
-        self._targets = merged
-
-    def _ensembled(self, stack: np.ndarray) -> np.ndarray:
-        weights = np.exp(-self.ensemble_decay * np.arange(len(stack)))
-        return np.asarray((weights[:, None] * stack).sum(axis=0) / weights.sum())
-
-    def _rows_from(self, tick_idx: int) -> np.ndarray:
-        start = tick_idx - self._base_tick
-        if start <= 0:
-            return self._targets
-        return self._targets[start:]
-
-    def _row_for(self, tick_idx: int) -> np.ndarray | None:
-        index = tick_idx - self._base_tick
-        if 0 <= index < len(self._targets):
-            if index > 0:  # drop the rows of past ticks
-                self._targets = self._targets[index:]
-                if self._ensemble:
-                    self._ensemble = self._ensemble[index:]
-                self._base_tick = tick_idx
-            return np.asarray(self._targets[0])
-        if index >= len(self._targets):
-            self._targets = self._targets[:0]
-            self._ensemble = []
         return None
 
     def _action(self, row: np.ndarray, world: WorldState) -> Action:

@@ -28,6 +28,7 @@ from openral_core import (
     WorldState,
 )
 from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.chunks import ChunkRequest
 from openral_rskill.pose import clamp_to_limits, measured_pose
 
 SKILL_ID = "gpu_passthrough"
@@ -58,6 +59,7 @@ class GpuPassthroughSkill(RSkillBase):
         self.device = params.device
         self._torch: Any = None
         self._pose: list[float] | None = None
+        self._rows = np.zeros((0, len(robot.joint_names)))
         self.last_means: list[float] = []
 
     @classmethod
@@ -108,18 +110,30 @@ class GpuPassthroughSkill(RSkillBase):
         torch.cuda.synchronize()
         return [float(v) for v in means.cpu()]
 
-    def _step_impl(self, world_state: WorldState) -> Action:
+    def _measure(self, world_state: WorldState) -> list[float]:
+        """Reduce every frame on the device (kept in :attr:`last_means`); latch the pose at the episode's start."""
         means: list[float] = []
         for frame in (world_state.image_frames or {}).values():
             means.extend(self.channel_means(frame.as_array()))
         self.last_means = means
         if self._pose is None:
             self._pose = clamp_to_limits(measured_pose(world_state, self.robot.joint_names), self.robot)
+            self._rows = np.array([self._pose], dtype=np.float64)
+            self._rows.flags.writeable = False
+        return self._pose
+
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        """The held pose as a one-row chunk, after the same device work as :meth:`step` (served, it is what replies)."""
+        self._measure(request.world)
+        return self._rows
+
+    def _step_impl(self, world_state: WorldState) -> Action:
+        pose = self._measure(world_state)
         return Action(
             control_mode=ControlMode.JOINT_POSITION,
             joint_names=self.robot.joint_names,
-            targets=[self._pose],
-            confidence=means or None,
+            targets=[pose],
+            confidence=self.last_means or None,
             stamp_ns=world_state.stamp_ns,
             skill_id=SKILL_ID,
         )

@@ -19,6 +19,7 @@ import math
 from collections.abc import Mapping
 from typing import Any, Literal, Self
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core.actions import Action, ControlMode
@@ -27,6 +28,7 @@ from openral_core.robot import JointKind, RobotManifest
 from openral_core.skills import RSkillInfo
 from openral_core.world import WorldState
 from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.chunks import ChunkRequest
 from openral_rskill.pose import clamp_to_limits, measured_pose
 
 SKILL_ID = "hello"
@@ -176,21 +178,27 @@ class HelloSkill(RSkillBase):
         self._centre = centre
         return centre
 
-    def _step_impl(self, world_state: WorldState) -> Action:
+    def _rows(self, world_state: WorldState) -> list[list[float]]:
         centre = self._centre if self._centre is not None else self._latch_centre(world_state)
         if self.params.chunk_size == 1:
             k = self._k
             self._k = k + 1
-            rows = [self._row(centre, k / self.rate_hz)]
-        else:  # a chunk: timed by the observation, row j for j ticks later
-            if self._first_stamp_ns is None:
-                self._first_stamp_ns = world_state.stamp_ns
-            t0 = (world_state.stamp_ns - self._first_stamp_ns) / 1e9
-            rows = [self._row(centre, t0 + j / self.rate_hz) for j in range(self.params.chunk_size)]
+            return [self._row(centre, k / self.rate_hz)]
+        # A chunk: timed by the observation, row j for j ticks later.
+        if self._first_stamp_ns is None:
+            self._first_stamp_ns = world_state.stamp_ns
+        t0 = (world_state.stamp_ns - self._first_stamp_ns) / 1e9
+        return [self._row(centre, t0 + j / self.rate_hz) for j in range(self.params.chunk_size)]
+
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        """The chunk for the request's observation as one array (no ``Action`` built for the executor)."""
+        return np.array(self._rows(request.world), dtype=np.float64)
+
+    def _step_impl(self, world_state: WorldState) -> Action:
         return Action(
             control_mode=ControlMode.JOINT_POSITION,
             joint_names=self._names,
-            targets=rows,
+            targets=self._rows(world_state),
             stamp_ns=world_state.stamp_ns,
             skill_id=SKILL_ID,
         )

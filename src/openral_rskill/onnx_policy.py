@@ -4,7 +4,8 @@ The parameters name the observation: an ordered list of fields concatenated into
 one input (``joint_state`` for the measured joints, ``privileged.<name>`` for a simulator's
 values), optional normalisation (or none, when it is folded into the graph), and how the model's
 rows are meant (the action representation, anchored by the chunk executor). The chunk size is
-read from the model's metadata (``chunk_size``) when it has it. One warm-up inference runs at
+read from the model's metadata (``chunk_size``) when it has it; the chunk goes to the chunk
+executor as the model's array (``step`` gives its first row). One warm-up inference runs at
 ``configure``, and ONNX Runtime's intra-op threads are set (one by default: the tick's machine
 has other work).
 """
@@ -38,6 +39,7 @@ from openral_rskill.anchoring import (
     UnanchoredRows,
 )
 from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.chunks import ChunkRequest
 
 try:
     import onnxruntime as ort
@@ -185,12 +187,17 @@ class OnnxPolicySkill(RSkillBase):
             vector = vector / self._std
         return np.asarray(vector, dtype=np.float32)
 
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        """The model's ``(rows, joints)`` output for the request's observation, as one array."""
+        return self._infer(self.observation_vector(request.world))
+
     def _step_impl(self, world_state: WorldState) -> Action:
-        rows = self._infer(self.observation_vector(world_state))
+        """The first row of the chunk for ``world_state`` (a chunk's rows run behind the chunk executor)."""
+        row = self._infer(self.observation_vector(world_state))[0]
         return Action(
             control_mode=self._info.control_mode,
             joint_names=self.names,
-            targets=rows.tolist(),
+            targets=[row.tolist()],
             stamp_ns=world_state.stamp_ns,
             skill_id=SKILL_ID,
         )

@@ -192,7 +192,8 @@ def _build_observers(env: RobotEnvironment, robot: RobotManifest, base_dir: Path
     observers: list[TickObserver] = []
     for index, spec in enumerate(env.observers):
         observer_cls = OBSERVER_REGISTRY.resolve(spec.id, field=f"observers[{index}].id")
-        observers.append(observer_cls.from_config(spec.params, robot=robot, env=env, base_dir=base_dir))
+        named = {} if spec.option is None else {"option": spec.option}  # only the shorthands' built-ins take it
+        observers.append(observer_cls.from_config(spec.params, robot=robot, env=env, base_dir=base_dir, **named))
     return observers
 
 

@@ -83,7 +83,9 @@ class SkillRunnerBase(InferenceRunnerBase):
         if skill.info.chunk_size > 1:
             if action_names is None:
                 raise ROSConfigError("a chunking skill needs the action's names", field="vla.id")
-            self.executor = _executor_for(skill, executor or ExecutorConfig(), action_names, virtual_delay)
+            self.executor = ChunkedExecutor.for_skill(
+                skill, executor, action_names=action_names, virtual_delay=virtual_delay
+            )
 
     def attach_recorder(self, recorder: TickObserver) -> None:
         """Make ``recorder`` the runner's recorder: its first observer, closed with the runner.
@@ -263,35 +265,6 @@ class SkillRunnerBase(InferenceRunnerBase):
 
     def _estop_robot(self) -> None:
         """Bring the robot to a safe stop now (a simulation has nothing to stop)."""
-
-
-def _executor_for(
-    skill: RSkillBase, config: ExecutorConfig, action_names: list[str], virtual_delay: Callable[[int], int] | None
-) -> ChunkedExecutor:
-    """The executor of a chunking skill: its ``step`` (a chunk) runs on the worker, or inline under virtual latency."""
-
-    return ChunkedExecutor(
-        skill.step_chunk,
-        reset=skill.reset,
-        action_names=action_names,
-        chunk_size=skill.info.chunk_size,
-        anchor=skill.action_anchor(),
-        seam=config.seam,
-        crossfade_rows=config.crossfade_rows,
-        ensemble_decay=config.ensemble_decay,
-        margin_ticks=config.margin_ticks,
-        min_rows=config.min_rows,
-        deadline_ticks=config.deadline_ticks,
-        max_starved_ticks=config.max_starved_ticks,
-        fallback=config.fallback,
-        executed_rows=config.executed_rows,
-        stale_start=config.indexing == "stale_start",
-        available=skill.available,
-        virtual_delay=virtual_delay,
-        skill_id=skill.info.skill_id,
-        control_mode=skill.info.control_mode,
-        observation_steps=skill.info.observation_steps,
-    )
 
 
 def record_error(span: Any, exc: BaseException) -> None:

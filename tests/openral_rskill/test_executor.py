@@ -10,7 +10,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from openral_core import JointState, PrivilegedState, SeamMode, StarvationFallback, WorldState
+from openral_core import ExecutorConfig, JointState, PrivilegedState, SeamMode, StarvationFallback, WorldState
 from openral_rskill.anchoring import EndEffectorDeltaAnchor, StateOffsetAnchor
 from openral_rskill.chunks import ChunkRequest
 from openral_rskill.executor import ChunkedExecutor, Outcome
@@ -59,10 +59,10 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 5.0) -> None:
         time.sleep(0.001)
 
 
-def executor(policy: GatedPolicy, **kwargs: object) -> ChunkedExecutor:
-    options: dict[str, object] = {"action_names": NAMES, "chunk_size": policy.rows, "reset": policy.reset}
+def executor(policy: GatedPolicy, config: ExecutorConfig | None = None, **kwargs: object) -> ChunkedExecutor:
+    options: dict[str, object] = {"action_names": NAMES, "reset": policy.reset}
     options.update(kwargs)
-    return ChunkedExecutor(policy.infer, **options)  # type: ignore[arg-type]
+    return ChunkedExecutor(policy.infer, config, **options)  # type: ignore[arg-type]
 
 
 def test_rows_skipped_equal_the_ticks_that_passed_while_inferring() -> None:
@@ -87,7 +87,7 @@ def test_rows_skipped_equal_the_ticks_that_passed_while_inferring() -> None:
 
 def test_a_chunk_with_too_few_usable_rows_is_discarded_and_counted() -> None:
     policy = GatedPolicy(rows=4)
-    ex = executor(policy, min_rows=2)
+    ex = executor(policy, ExecutorConfig(min_rows=2))
     try:
         for tick in range(3):
             ex.step(tick, world(tick))
@@ -123,7 +123,7 @@ def test_a_reset_discards_the_chunk_in_flight_and_never_runs_during_inference() 
 
 def test_starvation_holds_the_last_target_then_falls_back() -> None:
     policy = GatedPolicy(rows=3)
-    ex = executor(policy, max_starved_ticks=2, fallback=StarvationFallback.SKILL, margin_ticks=0)
+    ex = executor(policy, ExecutorConfig(max_starved_ticks=2, fallback=StarvationFallback.SKILL, margin_ticks=0))
     try:
         ex.step(0, world(0))
         policy.gate.release()  # the first chunk only: the next request stays stuck
@@ -141,7 +141,7 @@ def test_starvation_holds_the_last_target_then_falls_back() -> None:
 
 def test_a_hung_policy_never_blocks_the_tick_and_its_late_result_is_dropped() -> None:
     policy = GatedPolicy()
-    ex = executor(policy, deadline_ticks=5)
+    ex = executor(policy, ExecutorConfig(deadline_ticks=5))
     try:
         worst = 0.0
         for tick in range(40):
@@ -210,7 +210,7 @@ def test_virtual_latency_makes_a_chunk_usable_exactly_d_ticks_later() -> None:
 )
 def test_seams_between_the_old_chunk_and_the_new(seam: SeamMode, expected: list[float]) -> None:
     policy = GatedPolicy(rows=6, gated=False)
-    ex = executor(policy, virtual_delay=lambda _request: 0, seam=seam, crossfade_rows=1, margin_ticks=3)
+    ex = executor(policy, ExecutorConfig(seam=seam, crossfade_rows=1, margin_ticks=3), virtual_delay=lambda _request: 0)
     firsts = [ex.step(t, world(t)).action.first[0] for t in range(4)]  # type: ignore[union-attr]
     # Chunk 0 serves ticks 0 and 1; at tick 2 the rows left (4) reach p95 + margin, and chunk 1,
     # observed at tick 2 with no delay, meets chunk 0's row for tick 2 there.
@@ -219,7 +219,11 @@ def test_seams_between_the_old_chunk_and_the_new(seam: SeamMode, expected: list[
 
 def test_ensemble_weights_older_predictions_first() -> None:
     policy = GatedPolicy(rows=4, gated=False)
-    ex = executor(policy, virtual_delay=lambda _request: 0, seam=SeamMode.ENSEMBLE, ensemble_decay=0.0, margin_ticks=10)
+    ex = executor(
+        policy,
+        ExecutorConfig(seam=SeamMode.ENSEMBLE, ensemble_decay=0.0, margin_ticks=10),
+        virtual_delay=lambda _request: 0,
+    )
     values = [ex.step(t, world(t)).action.first[0] for t in range(2)]  # type: ignore[union-attr]
     # A new chunk every tick; with decay 0 each tick's target is the mean of every prediction for it.
     assert values[0] == 0.0
@@ -245,7 +249,11 @@ def test_each_chunk_request_is_a_span_and_starvation_and_discards_are_counted(te
 
     policy = GatedPolicy(rows=3, gated=False)
     delays = [1, 5]
-    ex = executor(policy, virtual_delay=lambda i: delays[i] if i < len(delays) else 0, min_rows=1, margin_ticks=0)
+    ex = executor(
+        policy,
+        ExecutorConfig(min_rows=1, margin_ticks=0),
+        virtual_delay=lambda i: delays[i] if i < len(delays) else 0,
+    )
     for tick in range(8):
         ex.step(tick, world(tick))
     spans = telemetry.spans(semconv.SPAN_EXECUTOR_CHUNK)
@@ -286,7 +294,7 @@ def test_a_request_span_is_a_child_of_the_asking_tick_and_inference_runs_under_i
         seen.append(trace.get_current_span().get_span_context().span_id)
         return np.zeros((4, 2))
 
-    ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=4)
+    ex = ChunkedExecutor(infer, action_names=NAMES)
     try:
         with tracer().start_as_current_span("tick") as tick:
             ex.step(0, world(0))
@@ -306,10 +314,9 @@ def test_a_source_that_is_down_is_not_asked_and_the_fallback_decides_at_once() -
     up = [True]
     ex = executor(
         policy,
+        ExecutorConfig(fallback=StarvationFallback.SKILL, max_starved_ticks=5),
         virtual_delay=lambda _request: 0,
         available=lambda: up[0],
-        fallback=StarvationFallback.SKILL,
-        max_starved_ticks=5,
     )
     assert ex.step(0, world(0)).outcome is Outcome.ACTION
     assert ex.rows_left == 6
@@ -329,10 +336,9 @@ def test_after_the_source_returns_the_fallback_acts_until_a_chunk_arrives() -> N
     up = [True]
     ex = executor(
         policy,
+        ExecutorConfig(fallback=StarvationFallback.SKILL, max_starved_ticks=5),
         virtual_delay=lambda request: 0 if request == 0 else 2,
         available=lambda: up[0],
-        fallback=StarvationFallback.SKILL,
-        max_starved_ticks=5,
     )
     assert ex.step(0, world(0)).outcome is Outcome.ACTION
     up[0] = False
@@ -347,7 +353,7 @@ def test_a_policy_that_times_out_is_counted_late_not_failed() -> None:
     def infer(request: ChunkRequest) -> np.ndarray:
         raise TimeoutError("no reply before the deadline")
 
-    ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=4, virtual_delay=lambda _request: 0)
+    ex = ChunkedExecutor(infer, action_names=NAMES, virtual_delay=lambda _request: 0)
     for tick in range(3):
         assert ex.step(tick, world(tick)).outcome is Outcome.NONE
     assert ex.stats.results_late == 3
@@ -371,7 +377,7 @@ def test_the_prefix_is_exactly_the_targets_sent_while_the_policy_infers() -> Non
         k = request.obs_tick
         return np.array([[k * 100 + j, -j] for j in range(8)], dtype=float)
 
-    ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=8, margin_ticks=1, virtual_delay=lambda _i: 3)
+    ex = ChunkedExecutor(infer, ExecutorConfig(margin_ticks=1), action_names=NAMES, virtual_delay=lambda _i: 3)
     sent = _drive(ex, 40)
     assert len(asked) >= 5
     assert len(asked[0].prefix) == 0  # nothing buffered yet: nothing runs while the first chunk is computed
@@ -395,7 +401,6 @@ def test_a_skill_that_continues_its_prefix_meets_the_old_chunk_without_a_jump() 
         ex = ChunkedExecutor(
             lambda request, use=use_prefix: chunk(request, use_prefix=use),  # type: ignore[misc]
             action_names=NAMES,
-            chunk_size=8,
             virtual_delay=lambda _i: 3,
         )
         sent = _drive(ex, 40)
@@ -412,7 +417,7 @@ def test_requests_carry_the_earlier_ticks_observations_and_a_reset_forgets_them(
         asked.append(request)
         return np.zeros((4, 2))
 
-    ex = ChunkedExecutor(infer, action_names=NAMES, chunk_size=4, virtual_delay=lambda _i: 0, observation_steps=3)
+    ex = ChunkedExecutor(infer, action_names=NAMES, virtual_delay=lambda _i: 0, observation_steps=3)
     _drive(ex, 12)
     first, later = asked[0], asked[-1]
     assert first.history == ()

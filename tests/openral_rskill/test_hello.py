@@ -8,6 +8,7 @@ from collections.abc import Callable
 from importlib.metadata import entry_points
 from typing import Any
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -24,6 +25,7 @@ from openral_core import (
     RSkillState,
     WorldState,
 )
+from openral_rskill.chunks import ChunkRequest
 from openral_rskill.hello import HelloParams, HelloSkill
 
 MakeWorld = Callable[..., WorldState]
@@ -310,3 +312,15 @@ def test_a_chunk_holds_the_wave_of_the_ticks_after_its_observation(robot: RobotM
         assert action.horizon == 10
         for j, row in enumerate(action.targets):
             assert row == pytest.approx(per_tick[tick + j], abs=1e-12)
+
+
+def test_the_chunk_executor_gets_the_same_chunk_as_one_array(robot: RobotManifest, make_world: MakeWorld) -> None:
+    stepped, chunked = hello(robot, chunk_size=5), hello(robot, chunk_size=5)
+    for skill in (stepped, chunked):
+        skill.configure()
+        skill.activate()
+    world = make_world(robot.joint_names, START, stamp_ns=1_000)
+    rows = chunked.step_chunk(ChunkRequest(world))
+    assert isinstance(rows, np.ndarray)
+    assert rows.shape == (5, len(robot.joint_names))
+    np.testing.assert_array_equal(rows, stepped.step(world).targets)

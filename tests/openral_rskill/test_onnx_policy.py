@@ -15,6 +15,7 @@ pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
 from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
 from openral_rskill.anchoring import EndEffectorDeltaAnchor, UnanchoredRows  # noqa: E402
+from openral_rskill.chunks import ChunkRequest  # noqa: E402
 from openral_rskill.onnx_policy import OnnxPolicySkill  # noqa: E402
 
 ROBOT = RobotManifest(
@@ -69,8 +70,10 @@ def test_chunk_size_comes_from_the_models_metadata_and_rows_from_the_session(tmp
     assert skill.info.chunk_size == 3
     skill.configure()
     skill.activate()
-    action = skill.step(world())
-    np.testing.assert_allclose(action.targets, [[0.5, 0.5], [1.5, 0.5], [2.5, 0.5]])
+    rows = skill.step_chunk(ChunkRequest(world()))
+    assert isinstance(rows, np.ndarray)  # the model's array, handed over as it is
+    np.testing.assert_allclose(rows, [[0.5, 0.5], [1.5, 0.5], [2.5, 0.5]])
+    assert skill.step(world()).targets == [[0.5, 0.5]]  # step, tick by tick: the chunk's first row
     np.testing.assert_allclose(skill.observation_vector(world()), [[0.5, 0.25, 7.0]])
 
 

@@ -19,20 +19,21 @@ from openral_core import ROSConfigError, ROSUnavailable
 from openral_perception.reward.frames import Frame, trend
 from openral_remote.codec import decode, encode
 from openral_remote.config import ZenohConfig
-from openral_remote.session import open_session
+from openral_remote.keys import segment
+from openral_remote.session import RemoteTimeout, open_session, request
 from openral_rskill.manifest import RSkillManifest
 
-
-class RewardTimeout(ROSUnavailable, TimeoutError):
-    """The reward sidecar did not answer before the deadline."""
+RewardTimeout = RemoteTimeout
+"""The reward sidecar did not answer before the deadline (the transport's one timeout)."""
 
 
 def reward_key(robot: str, model_id: str) -> str:
-    """The key a reward sidecar of ``model_id`` serves for ``robot``."""
-    for segment, field in ((robot, "robot"), (model_id, "model_id")):
-        if not segment or any(c in segment for c in "/*$?# "):
-            raise ROSConfigError(f"{segment!r} cannot be part of a key expression", field=field)
-    return f"openral/{robot}/reward/{model_id}/score"
+    """The key a reward sidecar of ``model_id`` serves for ``robot``.
+
+    Raises:
+        ROSConfigError: A segment that cannot be part of a key expression, naming it.
+    """
+    return f"openral/{segment(robot, 'robot')}/reward/{segment(model_id, 'model_id')}/score"
 
 
 def clip_array(frames: Sequence[Frame]) -> np.ndarray:
@@ -87,8 +88,10 @@ class RewardMonitor:
 
         Raises:
             ROSConfigError: An empty clip or task, or frames of different sizes.
-            RewardTimeout: No answer before the deadline.
-            ROSUnavailable: No sidecar answered, or it answered with an error or a malformed reply.
+            RemoteTimeout: No answer before the deadline.
+            PeerError: The sidecar answered with an error.
+            NoReply: No sidecar serves the key.
+            ROSUnavailable: A malformed reply.
         """
         if not task.strip():
             raise ROSConfigError("a clip is scored for a task; the task is empty", field="task")
@@ -96,21 +99,14 @@ class RewardMonitor:
         session = self._session
         if session is None:
             raise ROSUnavailable("the reward monitor is closed")
-        request = encode({"frames": clip, "task": task, "num_bins": self.num_bins})
-        for reply in session.get(self.key, payload=request, timeout=self.deadline_s):
-            if reply.ok is None:
-                text = reply.err.payload.to_bytes().decode("utf-8", "replace")
-                if "timeout" in text.lower():
-                    raise RewardTimeout(f"{self.key}: no answer within {self.deadline_s:g} s")
-                raise ROSUnavailable(f"{self.key}: the reward sidecar failed: {text}")
-            fields = decode(reply.ok.payload.to_bytes())
-            progress, success = fields.get("progress"), fields.get("success")
-            if not (isinstance(progress, np.ndarray) and isinstance(success, np.ndarray)):
-                raise ROSUnavailable(f"{self.key}: the reply has no progress and success arrays")
-            if progress.shape != (len(frames),) or success.shape != (len(frames),):
-                raise ROSUnavailable(f"{self.key}: {progress.shape} scores for a clip of {len(frames)} frames")
-            return np.clip(progress, 0, 1).tolist(), np.clip(success, 0, 1).tolist()
-        raise ROSUnavailable(f"no reward sidecar answers on {self.key}")
+        payload = encode({"frames": clip, "task": task, "num_bins": self.num_bins})
+        fields = decode(request(session, self.key, payload, timeout_s=self.deadline_s))
+        progress, success = fields.get("progress"), fields.get("success")
+        if not (isinstance(progress, np.ndarray) and isinstance(success, np.ndarray)):
+            raise ROSUnavailable(f"{self.key}: the reply has no progress and success arrays")
+        if progress.shape != (len(frames),) or success.shape != (len(frames),):
+            raise ROSUnavailable(f"{self.key}: {progress.shape} scores for a clip of {len(frames)} frames")
+        return np.clip(progress, 0, 1).tolist(), np.clip(success, 0, 1).tolist()
 
     def assess(self, frames: Sequence[Frame], task: str) -> dict[str, Any]:
         """Where the task stands: progress and success now, their trends, stalled, succeeded."""

@@ -166,24 +166,16 @@ def _sized(values: np.ndarray, feature: Feature) -> np.ndarray:
 
 
 def _rgb(frame: SensorFrame) -> np.ndarray:
-    """``(H, W, 3)`` uint8 RGB of a frame, a view where its layout allows."""
-    encoding = frame.encoding
-    if encoding == FrameEncoding.JPEG:
+    """``(H, W, 3)`` uint8 RGB of a frame: decoded from JPEG, else the frame's RGB view (no copy).
+
+    Raises:
+        ValueError: A frame with no 8-bit colour or grey to show (16-bit depth, PNG), naming the camera.
+    """
+    if frame.encoding == FrameEncoding.JPEG:
         data = frame.data if isinstance(frame.data, bytes | bytearray) else bytes(np.asarray(frame.data))
         with Image.open(io.BytesIO(data)) as picture:
             return np.asarray(picture.convert("RGB"))
-    pixels = frame.as_array()
-    if encoding == FrameEncoding.RGB8:
-        return pixels
-    if encoding == FrameEncoding.BGR8:
-        return pixels[..., ::-1]
-    if encoding == FrameEncoding.RGBA8:
-        return pixels[..., :3]
-    if encoding == FrameEncoding.BGRA8:
-        return pixels[..., 2::-1]
-    if encoding == FrameEncoding.MONO8:
-        return np.repeat(pixels.reshape(pixels.shape[0], pixels.shape[1], 1), 3, axis=2)
-    raise ValueError(f"camera '{frame.sensor_id}' sends {encoding} frames; a policy takes 8-bit colour or grey")
+    return frame.as_rgb()
 
 
 def _chw(rgb: np.ndarray, height: int, width: int) -> np.ndarray:
