@@ -17,10 +17,10 @@ ALLOWED: dict[str, set[str]] = {
     "openral_observability": {"openral_core"},
     "openral_world_state": {"openral_core", "openral_observability"},
     "openral_hal": {"openral_core", "openral_observability"},
-    "openral_rskill": {"openral_core", "openral_observability", "openral_hal"},
-    "openral_remote": {"openral_core", "openral_observability", "openral_rskill", "openral_hal"},
-    "openral_perception": {"openral_core", "openral_observability", "openral_rskill", "openral_hal", "openral_remote"},
-    "openral_dataset": {"openral_core", "openral_observability", "openral_hal"},
+    "openral_rskill": {"openral_core", "openral_observability", "openral_hal"},  # the leader arm reads its HAL
+    "openral_remote": {"openral_core", "openral_observability", "openral_rskill"},
+    "openral_perception": {"openral_core", "openral_observability", "openral_rskill", "openral_remote"},
+    "openral_dataset": {"openral_core", "openral_observability"},
     "openral_runner": {
         "openral_core",
         "openral_observability",
@@ -76,7 +76,7 @@ def test_every_package_imports_only_what_the_table_allows() -> None:
     assert upward == []
 
 
-def test_the_runner_no_longer_reaches_zenoh_through_remote() -> None:
+def test_the_runner_does_not_import_the_zenoh_services() -> None:
     assert "openral_remote" not in _graph()["openral_runner"]
 
 

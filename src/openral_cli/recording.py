@@ -42,7 +42,7 @@ VCODEC_OPTION = click.option(
 def dataset_entry(root: Path, *, resume: bool, vcodec: str) -> ObserverConfig:
     """The ``lerobot_dataset`` observer entry ``--dataset-out`` stands for (the path taken from the working folder)."""
     params = {"root": str(root.expanduser().absolute()), "resume": resume, "vcodec": vcodec}
-    return ObserverConfig(id="lerobot_dataset", params=params, option="--dataset-out")
+    return ObserverConfig.shorthand("lerobot_dataset", params, option="--dataset-out")
 
 
 def rosbag_entry(path: Path, *, deployment: Path | None) -> ObserverConfig:
@@ -50,12 +50,12 @@ def rosbag_entry(path: Path, *, deployment: Path | None) -> ObserverConfig:
     params: dict[str, Any] = {"path": str(path.expanduser().absolute())}
     if deployment is not None:
         params["attach"] = str(deployment.absolute())
-    return ObserverConfig(id="ros2_bag", params=params, option="--mcap")
+    return ObserverConfig.shorthand("ros2_bag", params, option="--mcap")
 
 
 def foxglove_entry(port: int) -> ObserverConfig:
     """The ``foxglove`` observer entry ``--foxglove PORT`` stands for."""
-    return ObserverConfig(id="foxglove", params={"port": port}, option="--foxglove")
+    return ObserverConfig.shorthand("foxglove", {"port": port}, option="--foxglove")
 
 
 def with_observers(env: RobotEnvironment, *entries: ObserverConfig, first: bool = False) -> RobotEnvironment:

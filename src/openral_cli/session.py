@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
@@ -14,7 +14,6 @@ from openral_cli.report import format_run_result
 from openral_cli.signals import StopSignals
 from openral_core import RobotEnvironment, ROSStopRequested, RunResult, StopReason
 from openral_observability import semconv, tracer
-from openral_observability.observer import TickObserver
 from openral_observability.propagation import context_from_env
 from openral_observability.setup import setup
 from openral_runner.factory import build_runner
@@ -68,22 +67,16 @@ def running(
     base_dir: Path,
     *,
     signals: StopSignals,
-    recorder: TickObserver | None = None,
-    observers: Sequence[TickObserver] = (),
 ) -> Iterator[HardwareRunner]:
     """Build the deployment, start it, and yield the active runner; close everything on the way out.
 
     Stop signals reach the runner from here on, and a stop during start-up unwinds what was
-    started (``ROSStopRequested``). Observers and the recorder are closed even when the runner
-    never activated.
+    started (``ROSStopRequested``). The observers are closed even when the runner never activated.
     """
     with ExitStack() as stack:
-        for observer in (*observers, *([recorder] if recorder is not None else [])):
-            stack.callback(observer.close)  # idempotent; for runs that never reached activate()
         runner, skill = build_runner(env, base_dir=base_dir)
-        if recorder is not None:
-            runner.attach_recorder(recorder)  # closed (the dataset finalized) by runner.deactivate()
-        runner.observers.extend(observers)
+        for observer in runner.observers:
+            stack.callback(observer.close)  # idempotent; for runs that never reached activate()
         signals.on_stop(runner.request_stop)
         # The escape: the robot's torque off even if the main thread is stuck (bounded by StopSignals).
         signals.on_force(runner.hal.disconnect)

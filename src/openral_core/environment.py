@@ -6,7 +6,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any, Self
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, field_validator, model_validator
 
 from openral_core.actions import SafetyMode, check_workspace_box
 from openral_core.config import load_model_yaml
@@ -16,9 +16,10 @@ from openral_core.frames import FrameEncoding
 _ID_PATTERN = r"^[A-Za-z][A-Za-z0-9_\-]*$"
 
 MAX_CAMERA_FPS = 1000.0
+"""Highest frame or publish rate a sensor may be configured for."""
+
 THUMBNAILS_OBSERVER = "thumbnails"
 """The observer that encodes camera thumbnails once for every viewer (``thumbnail_hz`` is short for it)."""
-"""Highest frame or publish rate a sensor may be configured for."""
 
 MAX_IMAGE_SIDE = 16384
 """Largest image width or height accepted (16K)."""
@@ -224,9 +225,22 @@ class ObserverConfig(_Block):
 
     id: str = Field(pattern=_ID_PATTERN)
     params: dict[str, Any] = Field(default_factory=dict)
-    option: str | None = None
-    """The command-line option this entry stands for (``--dataset-out``, ``--mcap``), set by the
-    CLI's shorthands: an observer that takes ``option=`` names it in its errors instead of the file's field."""
+    _option: str | None = PrivateAttr(default=None)
+
+    @classmethod
+    def shorthand(cls, observer_id: str, params: dict[str, Any], *, option: str) -> ObserverConfig:
+        """The entry a command-line ``option`` stands for; its observer names the option in its errors.
+
+        Not part of the file format: a deployment file cannot set it.
+        """
+        entry = cls(id=observer_id, params=params)
+        entry._option = option
+        return entry
+
+    @property
+    def option(self) -> str | None:
+        """The command-line option this entry stands for (``--dataset-out``), ``None`` for a file's own entry."""
+        return self._option
 
 
 class FaultPolicy(_Block):

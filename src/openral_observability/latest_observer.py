@@ -44,6 +44,7 @@ class LatestPerKeyObserver(TickObserver, Generic[K, V]):
         self._pending: dict[K, V] = {}
         self._cond = threading.Condition()
         self._stopping = False
+        self._closed = False
         self._thread: threading.Thread | None = None
         self.replaced = 0
         """Items overwritten by a newer one of the same key before the worker reached them."""
@@ -71,14 +72,18 @@ class LatestPerKeyObserver(TickObserver, Generic[K, V]):
         """Start (or restart) the worker. Idempotent."""
         with self._cond:
             if self._thread is not None and self._thread.is_alive():
-                return
+                return  # running, or still finishing a close that timed out: never a second worker
             self._stopping = False
+            self._closed = False
             self._thread = threading.Thread(target=self._run, name=self._name, daemon=True)
             self._thread.start()
 
     def close(self) -> None:
         """Let the worker handle what is pending, then stop it and run :meth:`handle_close`. Idempotent."""
         with self._cond:
+            if self._closed:
+                return
+            self._closed = True
             thread = self._thread
             self._stopping = True
             self._cond.notify()
@@ -86,7 +91,8 @@ class LatestPerKeyObserver(TickObserver, Generic[K, V]):
             thread.join(self._close_timeout_s)
             if thread.is_alive():
                 _log.error("observer did not finish in time", observer=self._name, timeout_s=self._close_timeout_s)
-            self._thread = None
+            else:
+                self._thread = None
         else:
             self._drain()  # never started: what was offered is still handled, on the caller's thread
             self._guarded(self.handle_close)

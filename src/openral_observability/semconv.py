@@ -193,7 +193,7 @@ METRIC_REMOTE_FAILURES: Final = "openral.remote.failures"
 METRIC_REMOTE_SERVER_CHANGES: Final = "openral.remote.server_changes"
 """Client: the server went down or came back, by ``openral.remote.outcome`` (``down``, ``up``, ``refused``)."""
 
-# Perception events (openral_runner.backends.gstreamer.perception_tee)
+# Perception events (openral_perception)
 SPAN_PERCEPTION_DETECT: Final = "openral.perception.detect"
 """One detector run on one frame (off the tick thread)."""
 EVENT_PERCEPTION: Final = "openral.event.perception"

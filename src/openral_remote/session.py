@@ -27,7 +27,7 @@ except ImportError as exc:
     raise ROSDependencyMissing("zenoh", extra="remote", needed_for="remote inference over Zenoh") from exc
 
 _ZENOH_TIMEOUT = "timeout"
-"""What Zenoh's own reply error says at a query's deadline (compared without case or spaces)."""
+"""What Zenoh's own reply error says at a query's deadline (compared ignoring case and surrounding spaces)."""
 
 
 class RemoteTimeout(ROSUnavailable, TimeoutError):

@@ -3,11 +3,13 @@
 What an extender needs is exported here: the seams (``SensorReader``, ``SafetyClient``,
 ``TickObserver``), the two observer bases (``QueuedObserver`` for every tick in order,
 ``LatestPerKeyObserver`` for the newest item per camera), the slot a capture backend publishes
-into (``LatestFrameSlot``, ``SlotReader``) and
-``build_runner``, which turns a deployment into a running ``HardwareRunner``.
+into (``LatestFrameSlot``, ``SlotReader``) and ``build_runner``, which turns a deployment into a
+running ``HardwareRunner``.
 """
 
+from openral_observability.latest_observer import LatestPerKeyObserver
 from openral_observability.observer import TickObserver
+from openral_observability.queued_observer import QueuedObserver
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.clock import Clock, SystemClock, precise_sleep, sleep_until
 from openral_runner.factory import build_runner

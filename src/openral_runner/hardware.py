@@ -31,7 +31,7 @@ from openral_core import (
 )
 from openral_hal.protocol import HAL
 from openral_observability import metrics, semconv, tracer
-from openral_observability.observer import ThumbnailSource, TickObserver
+from openral_observability.observer import StartableObserver, ThumbnailSource, TickObserver
 from openral_rskill.base import RSkillBase
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
@@ -63,7 +63,7 @@ class HardwareRunner(SkillRunnerBase):
         task: Instruction placed in every world state.
         realtime: Real-time knobs applied to the calling thread at activation.
         sync: Cameras read as one set with bounded capture skew each tick.
-        thumbnail_hz: The seed's shorthand for a ``thumbnails`` observer: small JPEG thumbnails of
+        thumbnail_hz: Shorthand for a ``thumbnails`` observer: small JPEG thumbnails of
             each camera at this rate, encoded once off the tick thread for the dashboard span and
             every thumbnail subscriber (the Foxglove view); 0 (or no camera) adds none.
         recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
@@ -123,7 +123,10 @@ class HardwareRunner(SkillRunnerBase):
         # Durations measured here are never negative: recorded on the instruments directly.
 
     def activate(self) -> None:
-        """Connect the HAL, then open every reader; on any failure close what was opened.
+        """Start the observers, connect the HAL, then open every reader; on any failure close what was opened.
+
+        Observers start first, so a dataset folder or a port that cannot be used is refused before
+        the robot is touched.
 
         A stop requested while starting (a signal, another thread) is honoured between steps:
         whatever was opened is closed again, the HAL disconnected included.
@@ -137,6 +140,14 @@ class HardwareRunner(SkillRunnerBase):
             return
         with ExitStack() as stack:
             self._check_stop()
+            # Closed in reverse: thumbnail makers (producers) first, so their last thumbnails still
+            # reach the observers that subscribe to them.
+            for observer in sorted(self.observers, key=lambda o: isinstance(o, ThumbnailSource)):
+                stack.callback(self._safe_close, f"observer {type(observer).__name__}", observer.close)
+            for observer in self.observers:
+                if isinstance(observer, StartableObserver):
+                    observer.start()  # idempotent: the base's activation finds it started
+            self._check_stop()
             self.hal.connect()
             stack.callback(self._safe_close, "hal", self.hal.disconnect)
             for reader in self.sensor_readers:
@@ -144,10 +155,6 @@ class HardwareRunner(SkillRunnerBase):
                 reader.open()
                 stack.callback(self._safe_close, f"sensor {reader.sensor_id}", reader.close)
             self._check_stop()
-            # Closed in reverse: thumbnail makers (producers) first, so their last thumbnails still
-            # reach the observers that subscribe to them.
-            for observer in sorted(self.observers, key=lambda o: isinstance(o, ThumbnailSource)):
-                stack.callback(self._safe_close, f"observer {type(observer).__name__}", observer.close)
             super().activate()  # starts the telemetry worker thread
             stack.callback(super().deactivate)
             if self.realtime is not None:
@@ -393,7 +400,7 @@ class HardwareRunner(SkillRunnerBase):
         self._frames[frame.sensor_id] = frame
 
     def _read_sensor(self, reader: SensorReader) -> None:
-        """Move one reader's latest frame into the world state, or its verdict (stale, failed) onto it."""
+        """Take one reader's latest frame, or its verdict (stale, failed) on this tick's read, for the snapshot."""
         span = self._telemetry.start_span(semconv.SPAN_SENSORS_READ)
         try:
             frame = reader.read_latest()

@@ -1,4 +1,4 @@
-"""The world-state stage: the latest joint state and sensor frames, snapshotted once per tick."""
+"""The world-state stage: one snapshot per tick of the frames and verdicts the runner read, and the joint state."""
 
 from openral_world_state.aggregator import JOINT_STATE_COMPONENT, WorldStateAggregator
 

@@ -242,6 +242,36 @@ def test_deploy_records_a_ros2_bag_with_one_tick_message_per_tick(tmp_path: Path
     assert topics.count("/joint_states") == 25
 
 
+def test_deploy_foxglove_serves_the_run_and_attaches_the_deployment_to_a_bag(tmp_path: Path) -> None:
+    pytest.importorskip("foxglove", reason="needs the 'foxglove' extra")
+    pytest.importorskip("rosbags", reason="needs the 'dataset' extra")
+    from mcap.reader import make_reader  # noqa: PLC0415
+
+    path = write(tmp_path, NULL_DEPLOYMENT)
+    recording = tmp_path / "run.mcap"
+    args = ["deploy", "--config", str(path), "--max-ticks", "10", "--foxglove", "0", "--mcap", str(recording)]
+    out = CliRunner().invoke(cli, args)
+    assert out.exit_code == 0, out.output
+    assert "foxglove: ws://127.0.0.1:" in out.output, "the flag's observer was built, started and printed"
+    with recording.open("rb") as stream:
+        attachments = [a.name for a in make_reader(stream).iter_attachments()]
+    assert attachments == [path.name]
+
+
+def test_a_taken_dataset_folder_is_refused_naming_the_flag_and_left_as_it_was(tmp_path: Path) -> None:
+    pytest.importorskip("pyarrow", reason="needs the 'dataset' extra")
+    path = write(tmp_path, NULL_DEPLOYMENT)
+    taken = tmp_path / "taken"
+    (taken / "meta").mkdir(parents=True)
+    (taken / "meta" / "notes.txt").write_text("mine")
+    out = CliRunner().invoke(cli, ["deploy", "--config", str(path), "--max-ticks", "5", "--dataset-out", str(taken)])
+    assert out.exit_code == 2, out.output
+    assert "--dataset-out" in out.output
+    assert "running" not in out.output, "refused while starting, before the first tick"
+    assert (taken / "meta" / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in taken.iterdir()) == ["meta"]
+
+
 def test_calibrate_records_the_ranges_a_person_moves_through(tmp_path: Path) -> None:
     pytest.importorskip("serial", reason="needs the 'serial' extra (pyserial)")
     import threading  # noqa: PLC0415

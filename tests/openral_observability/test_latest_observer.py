@@ -15,7 +15,7 @@ class _Gated(LatestPerKeyObserver[str, int]):
         self.seen: list[tuple[str, int]] = []
         self.entered = threading.Event()
         self.release = threading.Event()
-        self.closed = False
+        self.closes = 0
 
     def handle_item(self, key: str, item: int) -> None:
         self.entered.set()
@@ -25,7 +25,7 @@ class _Gated(LatestPerKeyObserver[str, int]):
         self.seen.append((key, item))
 
     def handle_close(self) -> None:
-        self.closed = True
+        self.closes += 1
 
 
 def test_newer_items_replace_waiting_ones_per_key_and_close_drains() -> None:
@@ -42,7 +42,9 @@ def test_newer_items_replace_waiting_ones_per_key_and_close_drains() -> None:
     observer.close()
     assert observer.seen == [("cam", 1), ("cam", 5), ("wrist", 7)]
     assert observer.handled == 3
-    assert observer.closed
+    assert observer.closes == 1
+    observer.close()
+    assert observer.closes == 1, "a second close does nothing"
 
 
 def test_a_failing_item_is_counted_and_the_worker_goes_on() -> None:
@@ -74,4 +76,4 @@ def test_close_without_start_still_handles_what_was_offered() -> None:
     observer.offer("cam", 3)
     observer.close()
     assert observer.seen == [("cam", 3)]
-    assert observer.closed
+    assert observer.closes == 1

@@ -893,3 +893,33 @@ def test_a_thumbnails_observer_entry_feeds_every_viewer_without_runner_special_c
     assert viewer.thumbs[0].sensor_id == "front"  # type: ignore[attr-defined]
     with pytest.raises(ROSConfigError, match="rate"):
         ThumbnailPublisher.from_config({"rate": 5})
+
+
+class RefusingObserver(TickObserver):
+    """An observer whose start refuses (a dataset folder it may not use, a port taken)."""
+
+    def __init__(self) -> None:
+        self.closed = 0
+
+    def on_tick(self, tick, world) -> None:
+        return
+
+    def start(self) -> None:
+        raise ROSConfigError("the folder holds other files", field="--dataset-out")
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+def test_an_observer_that_cannot_start_is_refused_before_the_robot_is_touched() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("front", clock)
+    refusing, watching = RefusingObserver(), EpisodeLog()
+    runner, hal, _ = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="front")])
+    runner.observers.extend([watching, refusing])
+    with pytest.raises(ROSConfigError, match="other files"):
+        runner.activate()
+    assert hal.connect_calls == 0
+    assert not cam.is_open
+    assert refusing.closed == 1
+    assert watching.closed == 1, "what was built is closed by the rollback"

@@ -20,11 +20,8 @@ from openral_perception.reward.frames import Frame, trend
 from openral_remote.codec import decode, encode
 from openral_remote.config import ZenohConfig
 from openral_remote.keys import segment
-from openral_remote.session import RemoteTimeout, open_session, request
+from openral_remote.session import open_session, request
 from openral_rskill.manifest import RSkillManifest
-
-RewardTimeout = RemoteTimeout
-"""The reward sidecar did not answer before the deadline (the transport's one timeout)."""
 
 
 def reward_key(robot: str, model_id: str) -> str:

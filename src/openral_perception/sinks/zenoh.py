@@ -6,14 +6,13 @@ from typing import Any
 
 from openral_core.perception import PerceptionEvent
 from openral_remote.config import ZenohConfig
-from openral_remote.keys import PolicyKeys
+from openral_remote.keys import segment
 from openral_remote.session import open_session
 
 
 def event_key(robot: str, kind: str) -> str:
-    """The key events of ``kind`` are published on (both segments checked)."""
-    keys = PolicyKeys.of(robot, kind)  # the same segment rules as a policy's name
-    return f"openral/{keys.robot}/perception/{keys.policy}"
+    """The key events of ``kind`` are published on (both segments checked, each error naming its field)."""
+    return f"openral/{segment(robot, 'robot')}/perception/{segment(kind, 'kind')}"
 
 
 class ZenohEventSink:

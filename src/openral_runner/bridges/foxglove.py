@@ -11,7 +11,7 @@ non-finite numbers are sent as ``null``):
 - ``/openral/safety`` (JSON ``openral.SafetyEvent``): one message per safety violation
   (``kind="safety_violation"``) and one per withheld action (``kind="action_withheld"``), with ``reason``.
 - ``/camera/<sensor_id>/compressed`` (``foxglove.CompressedImage``): the runner's JPEG thumbnails
-  (:mod:`openral_runner.thumbnails`, encoded once for every viewer at the deployment's ``thumbnail_hz``).
+  (:mod:`openral_runner.thumbnails`, encoded once for every viewer by the ``thumbnails`` observer).
 
 Times: a message's log time is the wall-clock time at which its tick was handed to the sink:
 ``time.monotonic_ns()`` plus one offset to ``time.time_ns()`` sampled when the sink is built, so
@@ -240,16 +240,23 @@ class FoxgloveSink(QueuedObserver):
 
     @classmethod
     def from_config(
-        cls, params: Mapping[str, Any], *, robot: Any, env: Any, base_dir: Path | None = None
+        cls,
+        params: Mapping[str, Any],
+        *,
+        robot: Any,
+        env: Any,
+        base_dir: Path | None = None,
+        option: str | None = None,
     ) -> FoxgloveSink:
         """Plugin constructor (observer ``foxglove``); ``params`` are validated as :class:`FoxgloveParams`.
 
-        Images come from the runner's thumbnails: give the deployment a ``thumbnail_hz``.
+        Images come from the ``thumbnails`` observer. ``option`` is the command-line option the entry
+        stands for (``--foxglove``): errors name it.
 
         Raises:
             ROSConfigError: A wrong parameter (named with the allowed keys).
         """
-        config = validate_model(FoxgloveParams, dict(params), field_prefix="observers[].params")
+        config = validate_model(FoxgloveParams, dict(params), field_prefix=option or "observers[].params")
         return cls(port=config.port, host=config.host)
 
     @property

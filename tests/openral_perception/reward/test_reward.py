@@ -44,13 +44,12 @@ zenoh = pytest.importorskip("zenoh", reason="needs the 'remote' extra")
 
 from openral_perception.reward.client import (  # noqa: E402
     RewardMonitor,
-    RewardTimeout,
     reward_key,
     sidecar_reply,
     sidecar_request,
 )
 from openral_remote.config import ZenohConfig  # noqa: E402
-from openral_remote.session import NoReply, open_session  # noqa: E402
+from openral_remote.session import NoReply, RemoteTimeout, open_session  # noqa: E402
 from openral_remote.testing import free_endpoint  # noqa: E402
 
 
@@ -120,7 +119,7 @@ def test_a_hung_sidecar_costs_one_request_and_the_next_one_works(sidecar_and_mon
     sidecar, monitor = sidecar_and_monitor
     sidecar.hang_s = 2.0
     started = time.perf_counter()
-    with pytest.raises(RewardTimeout):
+    with pytest.raises(RemoteTimeout):
         monitor.score([frame(0, 100)], "pick")
     assert time.perf_counter() - started < 1.5
     sidecar.hang_s = 0.0

@@ -2,7 +2,6 @@
 
 from openral_perception.reward.client import (
     RewardMonitor,
-    RewardTimeout,
     build_reward_monitor,
     clip_array,
     reward_key,
@@ -12,7 +11,6 @@ from openral_perception.reward.client import (
 
 __all__ = [
     "RewardMonitor",
-    "RewardTimeout",
     "build_reward_monitor",
     "clip_array",
     "reward_key",
