@@ -2,8 +2,8 @@
 
 Each detector is an entry ``{kind: <name in openral.detectors>, params: {...}}``; its ``params``
 are validated by the detector's own model when it is built, so a wrong key is named there with
-the keys that detector allows. The earlier shape, one key per built-in detector (``motion:``,
-``scene_change:``, ``objects:``, ``detector_manifest:``), is still read as shorthand for entries.
+the keys that detector allows. One key per built-in detector (``motion:``, ``scene_change:``,
+``objects:``, ``detector_manifest:``) is shorthand for such an entry.
 """
 
 from __future__ import annotations

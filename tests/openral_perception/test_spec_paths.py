@@ -24,10 +24,10 @@ LIGHT_PATHS = [
 
 @pytest.mark.parametrize(("spec_path", "home", "names"), LIGHT_PATHS)
 def test_the_specification_paths_name_the_same_objects(spec_path: str, home: str, names: list[str]) -> None:
-    old, new = importlib.import_module(spec_path), importlib.import_module(home)
+    spec_module, home_module = importlib.import_module(spec_path), importlib.import_module(home)
     for name in names:
-        assert getattr(old, name) is getattr(new, name), name
-        assert name in old.__all__
+        assert getattr(spec_module, name) is getattr(home_module, name), name
+        assert name in spec_module.__all__
 
 
 def test_the_heavy_specification_paths_name_the_same_objects():

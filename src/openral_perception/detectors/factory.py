@@ -168,7 +168,7 @@ def build_manifest_detector(
         ROSDependencyMissing: onnxruntime is not installed (the ``policy`` extra).
     """
     chosen = manifest_tier(manifest, tier)
-    require_runnable(chosen)
+    require_runnable(chosen, field="manifest" if tier is None else "tier")
     settings = manifest_settings(manifest, onnx_path=onnx_path)
     # The ONNX detector imports onnxruntime: loaded here, once a manifest that runs on it is in hand.
     from openral_perception.detectors.objects import ObjectsDetector  # noqa: PLC0415

@@ -133,7 +133,7 @@ def make_objects_detector(
     Raises:
         ROSConfigError: A tier this build cannot run, saying what it needs.
     """
-    require_runnable(DetectorTier.CPU_ONNX if tier is None else DetectorTier(tier))
+    require_runnable(DetectorTier.CPU_ONNX if tier is None else DetectorTier(tier), field="tier")
     return ObjectsDetector(onnx_path, labels=labels, model_id=model_id, **kwargs)
 
 

@@ -36,8 +36,12 @@ TIER_NEEDS: dict[DetectorTier, str] = {
 """What each tier other than the CPU needs (none of it ships with openral)."""
 
 
-def require_runnable(tier: DetectorTier) -> None:
+def require_runnable(tier: DetectorTier, *, field: str = "manifest") -> None:
     """Accept the CPU tier; refuse any other, saying what it needs.
+
+    Args:
+        tier: The tier asked for.
+        field: What asked for it (a detector manifest, or an explicit ``tier`` argument), for the error.
 
     Raises:
         ROSConfigError: A tier this build cannot run.
@@ -45,8 +49,8 @@ def require_runnable(tier: DetectorTier) -> None:
     if tier is not DetectorTier.CPU_ONNX:
         raise ROSConfigError(
             f"the {tier.value} detector tier needs {TIER_NEEDS[tier]}; openral runs ONNX detectors on the CPU",
-            field="objects.tier",
-            hint="use tier cpu_onnx",
+            field=field,
+            hint="use a detector manifest with runtime: onnx (the cpu_onnx tier)",
         )
 
 

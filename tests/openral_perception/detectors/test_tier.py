@@ -18,8 +18,9 @@ from openral_perception.detectors.tier import DetectorTier, require_runnable, se
     ],
 )
 def test_tiers_that_need_hardware_say_what_they_need(tier, need):
-    with pytest.raises(ROSConfigError, match=need):
+    with pytest.raises(ROSConfigError, match=need) as refused:
         require_runnable(tier)
+    assert refused.value.field == "manifest"
 
 
 def test_the_cpu_runs_and_the_fastest_tier_present_is_selected():
