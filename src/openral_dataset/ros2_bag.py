@@ -32,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import RobotManifest, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
 from openral_core.config import validate_model
-from openral_core.config_files import resolve_user_path
+from openral_core.config_files import read_config_file, resolve_user_path
 from openral_observability.observer import Thumbnail
 from openral_observability.queued_observer import QueuedObserver
 
@@ -71,12 +71,14 @@ class Ros2BagWriter(QueuedObserver):
     Args:
         path: The ``.mcap`` file, created by :meth:`start`.
         joint_names: The robot's joints (names of the command messages).
-        deployment: The deployment file, attached to the bag.
+        deployment: The deployment file, attached to the bag (read now, as a configuration file).
         overwrite: Replace an existing file instead of refusing.
         field: The option or field that named the file, for errors.
+        attach_field: The option or field that named ``deployment``, for errors.
 
     Raises:
-        ROSConfigError: The file exists (without ``overwrite``) or its folder is missing or read-only.
+        ROSConfigError: The file exists (without ``overwrite``) or its folder is missing or read-only;
+            ``deployment`` is not a regular UTF-8 file of at most 1 MiB.
     """
 
     def __init__(
@@ -87,12 +89,19 @@ class Ros2BagWriter(QueuedObserver):
         deployment: Path | None = None,
         overwrite: bool = False,
         field: str = "--mcap",
+        attach_field: str = "--config",
     ) -> None:
         _check_target(path, overwrite=overwrite, field=field)
+        # Read now, as a configuration file (regular, at most 1 MiB, UTF-8): a device, a FIFO or a
+        # huge file is refused before the bag exists, and starting reads nothing more.
+        self._attachment = (
+            None
+            if deployment is None
+            else (deployment.name, read_config_file(deployment, field=attach_field).encode("utf-8"))
+        )
         self.path = path
         self.joint_names = list(joint_names)
         self._overwrite = overwrite
-        self._deployment = deployment
         self._field = field
         self._file: IO[bytes] | None = None
         self._writer: Writer | None = None
@@ -129,7 +138,14 @@ class Ros2BagWriter(QueuedObserver):
         attach = None
         if config.attach is not None:
             attach = resolve_user_path(config.attach, base_dir, field="observers[].params.attach")
-        return cls(path, joint_names=robot.joint_names, overwrite=config.overwrite, field=field, deployment=attach)
+        return cls(
+            path,
+            joint_names=robot.joint_names,
+            overwrite=config.overwrite,
+            field=field,
+            deployment=attach,
+            attach_field="observers[].params.attach",
+        )
 
     def start(self) -> None:
         """Create the file and write the bag's header (the runner calls this at activation). Idempotent.
@@ -153,14 +169,15 @@ class Ros2BagWriter(QueuedObserver):
         self._offset_ns = time.time_ns() - time.monotonic_ns()
         self._writer = Writer(self._file)
         self._writer.start(profile="ros2", library="openral")
-        if self._deployment is not None:
+        if self._attachment is not None:
+            name, data = self._attachment
             now = time.time_ns()
             self._writer.add_attachment(
                 create_time=now,
                 log_time=now,
-                name=self._deployment.name,
+                name=name,
                 media_type="application/yaml",
-                data=self._deployment.read_bytes(),
+                data=data,
             )
 
     # -- observer hooks ----------------------------------------------------------------------

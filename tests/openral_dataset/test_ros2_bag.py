@@ -16,6 +16,7 @@ from PIL import Image
 
 from openral_core import ROSConfigError, SensorReaderConfig, TickResult
 from openral_dataset.ros2_bag import NOT_IN_TICK_RECORD, Ros2BagWriter
+from openral_hal.manifests import load_robot_manifest
 from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.hardware import HardwareRunner
@@ -166,3 +167,21 @@ def test_the_tick_record_is_every_tick_result_field_with_a_value_but_those_place
     with_value = {name for name, value in simulated if value is not None}
     assert set(record) == with_value - NOT_IN_TICK_RECORD
     assert (record["withheld_reason"], record["reward"], record["terminated"]) == ("safety", 0.5, False)
+
+
+@pytest.mark.parametrize("attach", ["missing.yaml", "/dev/zero", "big.yaml", "folder"])
+def test_an_attachment_that_is_not_a_small_regular_file_is_refused_before_the_bag_exists(
+    tmp_path: Path, attach: str
+) -> None:
+    (tmp_path / "big.yaml").write_bytes(b"#" * ((1 << 20) + 1))
+    (tmp_path / "folder").mkdir()
+    path = tmp_path / "run.mcap"
+    with pytest.raises(ROSConfigError) as refused:
+        Ros2BagWriter.from_config(
+            {"path": "run.mcap", "attach": attach},
+            robot=load_robot_manifest("so101_follower"),
+            env=None,
+            base_dir=tmp_path,
+        )
+    assert refused.value.field == "observers[].params.attach"
+    assert not path.exists()

@@ -6,15 +6,9 @@ what it needs, before any model is loaded.
 
 from __future__ import annotations
 
-import shutil
-import subprocess
-from collections.abc import Callable
 from enum import StrEnum
-from pathlib import Path
 
 from openral_core import ROSConfigError
-
-_INSPECT_TIMEOUT_S = 5.0
 
 
 class DetectorTier(StrEnum):
@@ -52,28 +46,3 @@ def require_runnable(tier: DetectorTier, *, field: str = "manifest") -> None:
             field=field,
             hint="use a detector manifest with runtime: onnx (the cpu_onnx tier)",
         )
-
-
-def select_detector_tier(
-    *, has_nvinfer: Callable[[], bool] | None = None, on_tegra: Callable[[], bool] | None = None
-) -> DetectorTier:
-    """The fastest tier this machine has: ``nvinfer`` where DeepStream is installed, NVMM on a Jetson, else the CPU."""
-    nvinfer = has_nvinfer or (lambda: _gst_has("nvinfer"))
-    tegra = on_tegra or (lambda: Path("/etc/nv_tegra_release").exists())
-    if nvinfer():
-        return DetectorTier.NVINFER
-    if tegra():
-        return DetectorTier.NVMM_AGGREGATOR
-    return DetectorTier.CPU_ONNX
-
-
-def _gst_has(element: str) -> bool:
-    """Whether the host's GStreamer has ``element`` (``gst-inspect-1.0 --exists``; no ``gi`` needed)."""
-    tool = shutil.which("gst-inspect-1.0")
-    if tool is None:
-        return False
-    try:
-        proc = subprocess.run([tool, "--exists", element], capture_output=True, timeout=_INSPECT_TIMEOUT_S, check=False)
-    except (OSError, subprocess.TimeoutExpired):
-        return False
-    return proc.returncode == 0
