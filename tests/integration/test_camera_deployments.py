@@ -74,11 +74,13 @@ def test_skill_sees_real_pixels_every_tick(deployment: str) -> None:
             assert frame.encoding == config.encoding
             assert pixels.std() > 1.0, "a blank frame is not a camera image"
             seqs.add((sensor_id, frame.seq))
-    # The camera kept delivering new frames (not one frozen image), and the skill saw nearly every
-    # one of them: how many a CPU renders in two seconds depends on the machine, what reaches the
-    # skill must not.
+    # The camera kept delivering new frames (not one frozen image), and the skill saw most of them:
+    # how many a CPU renders in two seconds depends on the machine, what reaches the skill must not.
+    # A camera and a loop at the same rate beat against each other under load (two frames land in
+    # one tick period, none in the next), so "most" leaves room for that aliasing while still
+    # failing a reader that hands over every other frame or a frozen one.
     for sensor_id, count in published.items():
         assert count >= 5, f"{sensor_id} published only {count} frames in two seconds"
         seen_ids = {seq for sid, seq in seqs if sid == sensor_id}
-        assert len(seen_ids) >= 0.8 * count - 1, (sensor_id, len(seen_ids), count)
+        assert len(seen_ids) >= 0.65 * count, (sensor_id, len(seen_ids), count)
     assert np.isfinite(result.tick_ms_p99)
