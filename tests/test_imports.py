@@ -116,6 +116,9 @@ NEEDS_A_HEAVY_LIBRARY = {
     "openral.sim_envs:so101": ("mujoco", "twin"),
     "openral.sim_envs:metaworld": ("mujoco", "twin"),
     "openral.sim_envs:pusht": ("cv2", "opencv"),
+    "openral.sim_envs:aloha": ("mujoco", "aloha"),
+    "openral.skills:aloha_transfer_cube_expert": ("mujoco", "aloha"),
+    "openral.skills:aloha_insertion_expert": ("mujoco", "aloha"),
     "openral.detectors:objects": ("onnxruntime", "policy"),
 }
 

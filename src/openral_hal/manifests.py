@@ -33,6 +33,7 @@ def _shipped(robot_id: str) -> Traversable:
 
 SO100_FOLLOWER = _shipped("so100_follower")
 SO101_FOLLOWER = _shipped("so101_follower")
+ALOHA_BIMANUAL_VIPERX = _shipped("aloha_bimanual_viperx")
 
 
 def known_robots() -> list[str]:

@@ -24,7 +24,7 @@ def _so101_mjcf() -> Path:
 
 
 def test_known_robots_lists_the_shipped_manifests() -> None:
-    assert known_robots() == ["so100_follower", "so101_follower"]
+    assert known_robots() == ["aloha_bimanual_viperx", "so100_follower", "so101_follower"]
 
 
 @pytest.mark.parametrize("robot_id", ["so100_follower", "so101_follower"])
@@ -111,3 +111,26 @@ def test_unknown_robot_lists_known_ids_and_suggests_the_closest() -> None:
 def test_robot_id_cannot_escape_the_robots_directory() -> None:
     with pytest.raises(ROSConfigError, match="unknown robot"):
         load_robot_manifest("../robots/so101_follower")
+
+
+def test_aloha_limits_are_the_simulated_arms_joint_ranges() -> None:
+    mujoco = pytest.importorskip("mujoco", reason="needs the 'twin' extra")
+    spec = importlib.util.find_spec("gym_aloha")
+    if spec is None or not spec.submodule_search_locations:
+        pytest.skip("gym-aloha is not installed (extra 'aloha'); it ships the ALOHA MJCF")
+    manifest = load_robot_manifest("aloha_bimanual_viperx")
+    assert manifest.mujoco is not None
+    model = mujoco.MjModel.from_xml_path(
+        str(Path(next(iter(spec.submodule_search_locations))) / "assets" / Path(manifest.mujoco.path).name)
+    )
+    arm = ("waist", "shoulder", "elbow", "forearm_roll", "wrist_angle", "wrist_rotate")
+    assert manifest.joint_names == [f"{side}_{j}" for side in ("left", "right") for j in (*arm, "gripper")]
+    for side in ("left", "right"):
+        for name in arm:
+            joint = manifest.joint(f"{side}_{name}")
+            lo, hi = model.joint(f"vx300s_{side}/{name}").range
+            assert (joint.lower, joint.upper) == pytest.approx((lo, hi), abs=1e-6), joint.name
+        gripper = manifest.joint(f"{side}_gripper")
+        assert gripper.kind == JointKind.GRIPPER
+        assert (gripper.lower, gripper.upper) == (0.0, 1.0)
+    assert set(manifest.mujoco.cameras) <= {model.camera(i).name for i in range(model.ncam)}
