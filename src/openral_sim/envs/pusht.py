@@ -19,6 +19,7 @@ observation shows (no action marker), drawn at 512 × 512 and resized to the req
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Self
 
 import numpy as np
@@ -29,7 +30,10 @@ from openral_core.config import validate_model
 from openral_sim.env import EnvSpec, SimObservation, SimStep
 
 try:
-    from gym_pusht.envs.pusht import PushTEnv as _GymPushTEnv
+    with warnings.catch_warnings():
+        # pygame (under gym-pusht) imports setuptools' deprecated pkg_resources when it is installed.
+        warnings.filterwarnings("ignore", message="pkg_resources is deprecated", category=UserWarning)
+        from gym_pusht.envs.pusht import PushTEnv as _GymPushTEnv
 except ImportError as exc:
     # gym-pusht draws with OpenCV; openral installs OpenCV's headless build through the extra 'opencv'.
     missing = exc.name or "gym_pusht"
