@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
-from openral_core.config_files import is_plain, load_config_file
+from openral_core.config_files import CONFIG_DIR, is_plain, load_config_file
 from openral_core.errors import ROSConfigError
 
 ModelT = TypeVar("ModelT", bound=BaseModel)
@@ -30,11 +30,16 @@ def load_model_yaml(model: type[ModelT], path: Path, *, field: str | None = None
         kind = "nothing" if data is None else type(data).__name__
         raise ROSConfigError(f"{path} must hold a mapping at the top level, not {kind}", field=field)
     source = f"{field}: {path}" if field else str(path)
-    return validate_model(model, data, source=source)
+    return validate_model(model, data, source=source, context={CONFIG_DIR: str(path.resolve().parent)})
 
 
 def validate_model(
-    model: type[ModelT], data: Any, *, source: str | None = None, field_prefix: str | None = None
+    model: type[ModelT],
+    data: Any,
+    *,
+    source: str | None = None,
+    field_prefix: str | None = None,
+    context: dict[str, Any] | None = None,
 ) -> ModelT:
     """Validate ``data`` as ``model``, raising ``ROSConfigError`` that names the first bad field.
 
@@ -45,11 +50,13 @@ def validate_model(
     Args:
         source: Where the data came from (a file, a plugin), appended to the message.
         field_prefix: Dotted path of ``data`` in the deployment (``hal.params``), prepended to field names.
+        context: Pydantic's validation context; files read by :func:`load_model_yaml` put their
+            folder under ``CONFIG_DIR`` (a model that resolves relative paths takes it from there).
     """
     try:
         if is_plain(data):
-            return model.model_validate_json(json.dumps(data), strict=True)
-        return model.model_validate(data)
+            return model.model_validate_json(json.dumps(data), strict=True, context=context)
+        return model.model_validate(data, context=context)
     except ValidationError as exc:
         raise config_error_from_validation(exc, model, source=source, field_prefix=field_prefix) from exc
 

@@ -55,6 +55,10 @@ _WIDE_BOMS: Final = (
 )
 
 
+CONFIG_DIR: Final = "config_dir"
+"""Validation-context key under which a file's own folder is passed to the model validating it."""
+
+
 def expand_user_path(value: str | os.PathLike[str], *, field: str | None = None) -> Path:
     """``value`` as a path with ``~`` expanded.
 

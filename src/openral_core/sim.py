@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
+from openral_core.config_files import CONFIG_DIR
 from openral_core.execution import ExecutorConfig, VirtualLatency
 
 SuccessKey = Literal["is_success", "succeed", "success"]
@@ -54,6 +55,25 @@ class SimEnvironment(BaseModel):
         description="Ticks from a chunk request to its use: inference is simulated, so results reproduce. "
         "null: the real latency (inference on the executor's worker, as on a robot; pace with rate_hz).",
     )
+    base_dir: str | None = Field(
+        default=None,
+        description="Folder that relative file paths in env_kwargs are resolved against; "
+        "by default the scene file's own folder (the working directory for a scene built in code).",
+    )
+
+    @model_validator(mode="after")
+    def _base_dir_from_file(self, info: ValidationInfo) -> Self:
+        folder = (info.context or {}).get(CONFIG_DIR)
+        if self.base_dir is None and isinstance(folder, str):
+            return self.model_copy(update={"base_dir": folder})
+        return self
+
+    def resolve_path(self, path: str) -> Path:
+        """``path`` (an ``env_kwargs`` file) as the scene means it: relative to ``base_dir``."""
+        candidate = Path(path).expanduser()
+        if candidate.is_absolute() or self.base_dir is None:
+            return candidate
+        return Path(self.base_dir) / candidate
 
     @field_validator("cameras")
     @classmethod
