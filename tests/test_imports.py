@@ -119,6 +119,7 @@ NEEDS_A_HEAVY_LIBRARY = {
     "openral.sim_envs:aloha": ("mujoco", "aloha"),
     "openral.skills:aloha_transfer_cube_expert": ("mujoco", "aloha"),
     "openral.skills:aloha_insertion_expert": ("mujoco", "aloha"),
+    "openral.sim_envs:libero": ("mujoco", "libero"),
     "openral.detectors:objects": ("onnxruntime", "policy"),
 }
 

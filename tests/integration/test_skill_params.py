@@ -26,7 +26,9 @@ from openral_rskill.lerobot_policy import LeRobotPolicyParams
 from openral_rskill.noop import HoldParams
 from openral_rskill.onnx_policy import OnnxPolicyParams
 from openral_runner.factory import SKILL_REGISTRY
+from openral_sim.skills.aloha_experts import AlohaExpertParams
 from openral_sim.skills.baselines import RandomParams, ZeroParams
+from openral_sim.skills.libero_expert import LiberoExpertParams
 from openral_sim.skills.metaworld_expert import MetaWorldExpertParams
 from openral_sim.skills.mock_expert import MockExpertParams
 from openral_sim.skills.so101_experts import PickParams, PickPlaceParams
@@ -45,6 +47,9 @@ SKILLS: dict[str, tuple[type[BaseModel], dict[str, Any]]] = {
     "so101_pick_expert": (PickParams, {}),
     "so101_pickplace_expert": (PickPlaceParams, {}),
     "metaworld_expert": (MetaWorldExpertParams, {"task": "reach-v3"}),
+    "aloha_transfer_cube_expert": (AlohaExpertParams, {}),
+    "aloha_insertion_expert": (AlohaExpertParams, {}),
+    "libero_expert": (LiberoExpertParams, {}),
     "lerobot_policy": (LeRobotPolicyParams, {"path": "<checkpoint>"}),  # a checkpoint folder, made per test
 }
 

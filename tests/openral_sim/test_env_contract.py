@@ -42,6 +42,7 @@ class Family:
 FAMILIES = [
     Family("aloha_transfer_cube.yaml", "aloha_transfer_cube_expert", "gym_aloha", "needs the 'aloha' extra"),
     Family("aloha_insertion.yaml", "aloha_insertion_expert", "gym_aloha", "needs the 'aloha' extra"),
+    Family("franka_libero_pnp.yaml", "libero_expert", "libero", "needs the 'libero' extra"),
 ]
 
 

@@ -51,7 +51,8 @@ class MujocoViews:
         env: Names the simulator in errors.
         gl: OpenGL backend; the process's by default (:func:`resolve_gl_backend`).
         moves_model: The simulator moves bodies and sites in the model itself (MetaWorld places
-            goals, drawers and doors at reset): their poses are copied before each frame too.
+            goals, drawers and doors at reset; LIBERO recolours sites): their poses and site
+            colours are copied before each frame too.
     """
 
     def __init__(
@@ -127,6 +128,7 @@ class MujocoViews:
             renderer.model.body_pos[:] = self.model.body_pos
             renderer.model.body_quat[:] = self.model.body_quat
             renderer.model.site_pos[:] = self.model.site_pos
+            renderer.model.site_rgba[:] = self.model.site_rgba  # LIBERO lights a stove burner by a site's alpha
         target = renderer.data
         target.qpos[:] = self.data.qpos
         if self.model.nmocap:
