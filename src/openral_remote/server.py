@@ -43,6 +43,8 @@ _log = structlog.get_logger(__name__)
 
 ERROR_SUPERSEDED = "superseded"
 ERROR_SHUTTING_DOWN = "shutting down"
+ALIVE_CHECK_TIMEOUT_S = 1.0
+"""How long the start-up check waits for a live server's token (peers answer at once when connected)."""
 
 
 def attachment_fields(attachment: Any) -> dict[str, Any]:
@@ -109,14 +111,21 @@ class PolicyServer:
         self.close()
 
     def start(self) -> None:
-        """Warm the policy up, declare the keys, then (last) the liveliness token; rolled back on failure."""
-        started = time.perf_counter()
-        self.skill.configure()
-        self.skill.activate()
-        self.meta = self.meta.model_copy(update={"warmup_ms": (time.perf_counter() - started) * 1e3})
-        self._meta_bytes = self.meta.to_bytes()
+        """Warm the policy up, declare the keys, then (last) the liveliness token; rolled back on failure.
+
+        Raises:
+            ROSConfigError: Another server already holds the key's liveliness token (checked before
+                the warm-up and again just before declaring): two servers would answer one robot.
+        """
         try:
             self._session = open_session(self.zenoh)
+            self._refuse_if_served()
+            started = time.perf_counter()
+            self.skill.configure()
+            self.skill.activate()
+            self.meta = self.meta.model_copy(update={"warmup_ms": (time.perf_counter() - started) * 1e3})
+            self._meta_bytes = self.meta.to_bytes()
+            self._refuse_if_served()
             self._worker = threading.Thread(target=self._work, name="openral-policy-server", daemon=True)
             self._worker.start()
             self._declared = [
@@ -152,6 +161,16 @@ class PolicyServer:
             self._session.close()
             self._session = None
         self.skill.shutdown()
+
+    def _refuse_if_served(self) -> None:
+        """Raise when a server reachable from this session already declares the key's liveliness token."""
+        replies = self._session.liveliness().get(self.keys.alive, timeout=ALIVE_CHECK_TIMEOUT_S)
+        if any(reply.ok is not None for reply in replies):
+            raise ROSConfigError(
+                f"{self.keys.prefix} is already served: another policy server holds its liveliness token "
+                f"{self.keys.alive}",
+                hint="stop that server first, or serve this policy under another name (--name)",
+            )
 
     # -- Zenoh's threads -------------------------------------------------------------------
 

@@ -145,3 +145,36 @@ def test_accepting_a_new_model_takes_it(server, client):
     assert remote.meta is not None
     assert remote.meta.model_hash == "model-b"
     assert remote.infer(_world())[0, 0] == pytest.approx(0.1 + 2.0)
+
+
+class _CountingSkill(ChunkSkill):
+    """Counts its warm-ups: a refused server must not load its model."""
+
+    configured = 0
+
+    def _on_configure(self) -> None:
+        type(self).configured += 1
+        super()._on_configure()
+
+
+def test_a_second_server_on_a_live_key_refuses_to_start_before_loading_its_model(server, client, keys, endpoint):
+    from openral_core import ROSConfigError  # noqa: PLC0415
+    from openral_remote.config import ZenohConfig  # noqa: PLC0415
+    from openral_remote.server import PolicyServer  # noqa: PLC0415
+    from openral_remote.testing import chunk_meta, free_endpoint  # noqa: PLC0415
+
+    first = server()
+    client()  # the first server is up: its token is live
+    skill = _CountingSkill(["a0", "a1"])
+    meta = chunk_meta(skill, rate_hz=10.0, model_hash="model-b")
+    # A peer of the first server, listening for robots of its own: the robots would reach both.
+    second_zenoh = ZenohConfig(connect=[endpoint], listen=[free_endpoint()])
+    with pytest.raises(ROSConfigError, match="already served") as refused:
+        PolicyServer(skill, keys=keys, zenoh=second_zenoh, meta=meta).start()
+    assert keys.alive in str(refused.value)
+    assert _CountingSkill.configured == 0
+    # Once the first server is gone, the same key is free.
+    first.stop()
+    with PolicyServer(_CountingSkill(["a0", "a1"]), keys=keys, zenoh=second_zenoh, meta=meta) as replacement:
+        assert replacement.meta.model_hash == "model-b"
+    assert _CountingSkill.configured == 1
