@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -223,6 +224,17 @@ def test_missing_bddl_file_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ROSConfigError, match="not found") as info:
         LiberoEnv.from_scene(pnp_scene(env_kwargs={"bddl": str(tmp_path / "nope.bddl")}))
     assert info.value.field == "env_kwargs.bddl"
+
+
+def test_a_bddl_path_that_is_no_text_file_is_refused_without_hanging(tmp_path: Path) -> None:
+    fifo = tmp_path / "pipe.bddl"
+    os.mkfifo(fifo)  # no writer: a plain read would block forever
+    binary = tmp_path / "binary.bddl"
+    binary.write_bytes(b"\xff\xfe\x00(define")
+    for path, message in ((fifo, "FIFO"), (binary, "UTF-8"), (tmp_path, "directory")):
+        with pytest.raises(ROSConfigError, match=message) as info:
+            LiberoEnv.from_scene(pnp_scene(env_kwargs={"bddl": str(path)}))
+        assert info.value.field == "env_kwargs.bddl"
 
 
 @pytest.mark.parametrize(

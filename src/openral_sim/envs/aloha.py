@@ -134,6 +134,7 @@ class AlohaEnv:
                 f"{obj}_{axis}" for obj in self.task.objects for axis in ("x", "y", "z", "qw", "qx", "qy", "qz")
             ),
         )
+        self._low, self._high = np.array(self.spec.action_low), np.array(self.spec.action_high)
         self._last = SimObservation(state=np.zeros(len(names)))
         self._views = MujocoViews(self.model, self._physics.data.ptr, env=f"gym-aloha {env_id}", gl=self.params.gl)
 
@@ -169,8 +170,7 @@ class AlohaEnv:
         return self._observe(reward=0)
 
     def step(self, action: np.ndarray) -> SimStep:
-        low, high = np.asarray(self.spec.action_low), np.asarray(self.spec.action_high)
-        command = np.clip(np.asarray(action, dtype=np.float64), low, high)
+        command = np.clip(np.asarray(action, dtype=np.float64), self._low, self._high)
         self._task.before_step(command, self._physics)
         try:
             for _ in range(self._substeps):

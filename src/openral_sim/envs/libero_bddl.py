@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from openral_core import ROSConfigError
+from openral_core.config_files import read_config_file
 
 SECTIONS = (
     "problem",
@@ -181,14 +182,8 @@ def check_bddl(
         ROSConfigError: The file is missing or unreadable, or its first problem, with its line.
     """
     refuse = _Refusal(path, field)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise ROSConfigError(
-            f"BDDL file not found: {path}", field=field, hint="a relative path is taken from the working directory"
-        ) from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ROSConfigError(f"cannot read BDDL file {path}: {exc}", field=field) from exc
+    # The project's bounded reader: a FIFO does not hang, a huge or binary file is one line.
+    text = read_config_file(path, field=field, missing_hint="a relative path is taken from the scene file's folder")
     root = read_groups(text, refuse)
     if root.head() != "define":
         raise refuse(root.line, "a problem file starts with (define", hint="write (define (problem NAME) ...)")
