@@ -151,7 +151,6 @@ class AlohaEnv:
             ROSConfigError: An unknown ``env_id``, a bad ``env_kwargs`` key, or a camera the model
                 lacks (listing the ones it has).
         """
-        task_of(scene.env_id)
         params = validate_model(AlohaParams, scene.env_kwargs, field_prefix="env_kwargs")
         env = cls(scene.env_id or "", params)
         try:
