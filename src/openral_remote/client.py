@@ -213,12 +213,16 @@ class RemotePolicyClient:
         return rows
 
     def reset(self, seed: int | None = None) -> None:
-        """Start a new episode on the server (waits for it, at most the deadline)."""
+        """Start a new episode of this client on the server (waits for it, at most the deadline).
+
+        The server keeps an episode per client: this resets ours only, never another robot's.
+        """
         if not self._up:
             raise ServerUnavailable(f"the policy server at {self.keys.prefix} is down")
         body = json.dumps({"seed": seed}).encode("utf-8")
+        attachment = json.dumps({"client": self.client_id}).encode("utf-8")
         try:
-            request(self._session, self.keys.reset, body, timeout_s=self.deadline_s)
+            request(self._session, self.keys.reset, body, timeout_s=self.deadline_s, attachment=attachment)
         except PeerError as exc:
             raise _refusal(exc) from None
         except NoReply:

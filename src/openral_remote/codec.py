@@ -91,6 +91,23 @@ def decode(message: bytes | bytearray | memoryview) -> dict[str, Any]:
     Raises:
         WireFormatError: Anything malformed or refused, naming what.
     """
+    entries, payload = _split(message)
+    return {name: _field(name, entry, payload) for name, entry in entries.items()}
+
+
+def read_header(message: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """The field table of a message (name → entry: ``kind``, ``shape``, ``dtype``, ``nbytes``), nothing decoded.
+
+    What a server checks a request against before it spends anything on it (a JPEG's pixels).
+
+    Raises:
+        WireFormatError: The prefix or the header is malformed.
+    """
+    return _split(message)[0]
+
+
+def _split(message: bytes | bytearray | memoryview) -> tuple[dict[str, Any], memoryview]:
+    """The checked field table and the payload after it."""
     view = memoryview(message).cast("B")
     if len(view) < _PREFIX.size:
         raise WireFormatError(f"a message of {len(view)} bytes is shorter than its prefix")
@@ -111,8 +128,7 @@ def decode(message: bytes | bytearray | memoryview) -> dict[str, Any]:
     entries = header.get("fields")
     if not isinstance(entries, dict):
         raise WireFormatError("header has no field table")
-    payload = view[_PREFIX.size + header_len :]
-    return {name: _field(name, entry, payload) for name, entry in entries.items()}
+    return entries, view[_PREFIX.size + header_len :]
 
 
 def _field(name: str, entry: Any, payload: memoryview) -> Any:

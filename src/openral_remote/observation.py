@@ -9,6 +9,7 @@ is sent only that: a joint-space policy never costs the link a camera image.
 
 from __future__ import annotations
 
+import io
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -124,6 +125,8 @@ def _world(fields: Mapping[str, Any]) -> WorldState:
         if name.startswith("image.") and not name.endswith(".meta"):
             sensor_id = name.removeprefix("image.")
             meta = fields[f"{name}.meta"]
+            if FrameEncoding(meta["encoding"]) in _COMPRESSED:
+                _check_compressed_size(name, _array(value), (int(meta["width"]), int(meta["height"])))
             frames[sensor_id] = SensorFrame(
                 sensor_id=sensor_id,
                 stamp_ns=int(meta["stamp_ns"]),
@@ -145,6 +148,21 @@ def _world(fields: Mapping[str, Any]) -> WorldState:
         image_frames=frames or None,
         privileged=PrivilegedState(values=privileged) if privileged else None,
     )
+
+
+def _check_compressed_size(name: str, data: np.ndarray, announced: tuple[int, int]) -> None:
+    """Refuse a JPEG or PNG whose own header says another size than its description (read lazily: no pixel decoded)."""
+    from PIL import Image, UnidentifiedImageError  # noqa: PLC0415
+
+    try:
+        with Image.open(io.BytesIO(data.tobytes()), formats=["JPEG", "PNG"]) as image:
+            size = image.size
+    except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as exc:
+        raise WireFormatError(f"field {name!r}: not a JPEG or PNG ({exc})") from None
+    if size != announced:
+        raise WireFormatError(
+            f"field {name!r}: an image of {size[0]}x{size[1]} described as {announced[0]}x{announced[1]}"
+        )
 
 
 def _array(value: Any) -> np.ndarray:

@@ -44,8 +44,11 @@ class ChunkSkill(RSkillBase):
         chunk_size: Rows per chunk.
         offset: Added to every row (two "models" differ by it).
         step: Added per row.
-        delay_s: Time each inference takes (a GPU's, or a hang when long).
+        delay_s: Time each inference takes (a GPU's, or a hang when long); a batch takes it once.
         observation: What it says it reads (the client sends only that; empty: everything).
+        latch: Keep episode state: ``base`` is the joints of the episode's first inference (an
+            expert that plans from where it started), so the skill cannot be shared between episodes.
+        batch: Requests one inference takes (``batch_sizes`` records each inference's).
     """
 
     def __init__(
@@ -57,6 +60,8 @@ class ChunkSkill(RSkillBase):
         step: float = 0.01,
         delay_s: float = 0.0,
         observation: Sequence[str] = ("joint_state",),
+        latch: bool = False,
+        batch: int = 1,
     ) -> None:
         super().__init__()
         self.action_names = list(action_names)
@@ -64,7 +69,11 @@ class ChunkSkill(RSkillBase):
         self.offset = offset
         self.step_size = step
         self.delay_s = delay_s
+        self.latch = latch
+        self.batch = batch
         self.seeds: list[int | None] = []
+        self.batch_sizes: list[int] = []
+        self._latched: np.ndarray | None = None
         self._info = RSkillInfo(skill_id="chunk_test", chunk_size=chunk_size, observation=list(observation))
 
     @property
@@ -77,16 +86,31 @@ class ChunkSkill(RSkillBase):
         joints = world.joint_state
         if joints is not None and len(joints.positions) == len(base):
             base = np.asarray(joints.positions, dtype=np.float64)
+        if self.latch:
+            if self._latched is None:
+                self._latched = base
+            base = self._latched
         steps = self.step_size * np.arange(self.chunk_size)[:, None]
         return np.asarray(base + self.offset + steps)
 
+    def serves_many_episodes(self) -> bool:
+        return not self.latch
+
+    def batch_capacity(self) -> int:
+        return self.batch
+
     def _on_reset(self) -> None:
         self.seeds.append(self.episode_seed)
+        self._latched = None
 
     def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        return self._chunks_impl([request])[0]
+
+    def _chunks_impl(self, requests: Sequence[ChunkRequest]) -> list[np.ndarray]:
+        self.batch_sizes.append(len(requests))
         if self.delay_s:
             time.sleep(self.delay_s)
-        return self.rows(request.world)
+        return [self.rows(request.world) for request in requests]
 
     def _step_impl(self, world_state: WorldState) -> Action:
         return Action(joint_names=self.action_names, targets=[self._chunk_impl(ChunkRequest(world_state))[0].tolist()])

@@ -33,7 +33,7 @@ The factory returns an ``UNCONFIGURED`` skill; the caller drives the lifecycle.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from time import perf_counter_ns
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
@@ -141,6 +141,23 @@ class RSkillBase(ABC):
 
     def _on_reset(self) -> None:  # noqa: B027 (optional hook)
         """Start a new episode: clear per-episode state (latched poses, chunk queues, step counters)."""
+
+    def serves_many_episodes(self) -> bool:
+        """Whether one instance can serve several episodes at once: its chunk depends on the request alone.
+
+        True for a policy whose chunk is a function of the request's observation, history and
+        prefix (no plan, queue or generator carried between calls). A policy server then shares
+        one loaded model between its robots; otherwise each robot gets an instance of its own.
+        """
+        return False
+
+    def batch_capacity(self) -> int:
+        """How many requests one inference can take (:meth:`step_chunks`); 1: one at a time."""
+        return 1
+
+    def _chunks_impl(self, requests: Sequence[ChunkRequest]) -> list[np.ndarray]:
+        """The chunks of several requests; by default one :meth:`_chunk_impl` each. Batching skills override it."""
+        return [self._chunk_impl(request) for request in requests]
 
     @abstractmethod
     def _step_impl(self, world_state: WorldState) -> Action:
@@ -291,6 +308,17 @@ class RSkillBase(ABC):
             ROSSkillError: As :meth:`step`.
         """
         return self._stepped(self._chunk_impl, request)
+
+    def step_chunks(self, requests: Sequence[ChunkRequest]) -> list[np.ndarray]:
+        """The chunks of several requests in one inference (at most :meth:`batch_capacity`), in their order.
+
+        A policy server batches concurrent robots' requests through it. The same lifecycle and
+        error latch as :meth:`step`; the latency figures count the batch as one step.
+
+        Raises:
+            ROSSkillError: As :meth:`step`.
+        """
+        return self._stepped(self._chunks_impl, requests)
 
     def _stepped(self, compute: Callable[[_In], _Out], argument: _In) -> _Out:
         if self._state is not _S.ACTIVE:

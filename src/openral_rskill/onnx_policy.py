@@ -52,6 +52,8 @@ META_OBSERVATION = "openral.observation"
 META_REPRESENTATION = "openral.representation"
 META_ANCHOR_KEY = "openral.anchor_key"
 META_ACTION_SCALE = "openral.action_scale"
+MAX_BATCH = 256
+"""Requests one inference takes at most, for a model with a dynamic batch dimension."""
 
 
 class OnnxPolicyParams(BaseModel):
@@ -157,6 +159,17 @@ class OnnxPolicySkill(RSkillBase):
         self._input = inputs[0].name
         self._infer(np.zeros((1, self._obs_dim()), dtype=np.float32))  # warm-up: allocations, kernels
 
+    def serves_many_episodes(self) -> bool:
+        """A chunk is the model's output for one observation: nothing is carried between inferences."""
+        return True
+
+    def batch_capacity(self) -> int:
+        """``MAX_BATCH`` when the model's batch dimension is dynamic (a name, not a number); else 1."""
+        if self._session is None:
+            return 1
+        leading = self._session.get_inputs()[0].shape[0]
+        return MAX_BATCH if not isinstance(leading, int) else max(1, leading)
+
     def _obs_dim(self) -> int:
         shape = self._session.get_inputs()[0].shape
         return int(shape[-1])
@@ -190,6 +203,15 @@ class OnnxPolicySkill(RSkillBase):
     def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
         """The model's ``(rows, joints)`` output for the request's observation, as one array."""
         return self._infer(self.observation_vector(request.world))
+
+    def _chunks_impl(self, requests: Sequence[ChunkRequest]) -> list[np.ndarray]:
+        """One inference over the stacked observations (one by one for a model without a dynamic batch dimension)."""
+        if len(requests) == 1 or self.batch_capacity() == 1:
+            return [self._chunk_impl(request) for request in requests]
+        batch = np.concatenate([self.observation_vector(request.world) for request in requests])
+        (output,) = self._session.run(None, {self._input: batch})
+        rows = np.asarray(output, dtype=np.float64).reshape(len(requests), -1, len(self.names))
+        return list(rows)
 
     def _step_impl(self, world_state: WorldState) -> Action:
         """The first row of the chunk for ``world_state`` (a chunk's rows run behind the chunk executor)."""

@@ -142,7 +142,7 @@ def export_onnx(
         numpy_helper.from_array(norm["obs_std"].astype(np.float32), "obs_std"),
         numpy_helper.from_array(norm["act_mean"].astype(np.float32), "act_mean"),
         numpy_helper.from_array(norm["act_std"].astype(np.float32), "act_std"),
-        numpy_helper.from_array(np.array([1, chunk, action_dim], dtype=np.int64), "out_shape"),
+        numpy_helper.from_array(np.array([-1, chunk, action_dim], dtype=np.int64), "out_shape"),
     ]
     nodes = [
         helper.make_node("Sub", ["observation", "obs_mean"], ["centred"]),
@@ -165,8 +165,8 @@ def export_onnx(
     graph = helper.make_graph(
         nodes,
         "mlp_chunk_policy",
-        [helper.make_tensor_value_info("observation", TensorProto.FLOAT, [1, len(samples.observation_names)])],
-        [helper.make_tensor_value_info("actions", TensorProto.FLOAT, [1, chunk, action_dim])],
+        [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["batch", len(samples.observation_names)])],
+        [helper.make_tensor_value_info("actions", TensorProto.FLOAT, ["batch", chunk, action_dim])],
         initializers,
     )
     proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="openral")
