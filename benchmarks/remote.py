@@ -3,7 +3,10 @@
 1. openral over Zenoh TCP on loopback (``openral_remote``: the wire codec, a queryable, one worker,
    the observation rebuilt as a ``WorldState`` and stepped through a skill, the chunk encoded back).
 2. The same over Zenoh shared memory (the request is written into a shared segment).
-   Then the TCP round trip as the chunk executor asks for it: the ``remote_policy`` skill's chunk.
+   Then TCP, TLS and mutual TLS (certificates of a private CA made for the run) side by side:
+   three servers, the three clients asked in turn in every slot, so load drifts hit all three
+   alike; TLS's cost against TCP is printed as ratios. Then the TCP round trip as the chunk
+   executor asks for it: the ``remote_policy`` skill's chunk.
 3. gRPC + pickle, as LeRobot's async inference does it: the observation dict pickled into a
    unary call, the chunk pickled back (code execution on both ends; here only for comparison).
 4. Zenoh alone: the same bytes to a queryable whose worker replies a fixed chunk's bytes (no
@@ -27,9 +30,11 @@ import argparse
 import pickle
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from concurrent import futures
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,11 +45,12 @@ from openral_hal.manifests import load_robot_manifest
 from openral_remote.allocator import keep_message_memory
 from openral_remote.client import RemotePolicyClient
 from openral_remote.codec import encode
-from openral_remote.config import RemotePolicyParams, ZenohConfig
+from openral_remote.config import RemotePolicyParams, TlsConfig, ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.observation import world_fields
 from openral_remote.skill import RemotePolicySkill
 from openral_remote.testing import POLICY, ROBOT, free_endpoint
+from openral_remote.testing_tls import make_ca, make_certificate
 from openral_rskill.chunks import ChunkRequest
 
 CHUNK, DIMS = 50, 6
@@ -86,14 +92,32 @@ def _paced(call: Callable[[], Any], seconds: float, rate_hz: float) -> Timings:
     return paced, back_to_back
 
 
-def _policy_server(endpoint: str, rate_hz: float) -> subprocess.Popen[bytes]:
+def _policy_server(endpoint: str, rate_hz: float, *extra: str) -> subprocess.Popen[bytes]:
     """A policy server of a fixed-shape chunk (``openral_remote.testing``) in its own process."""
     return subprocess.Popen(
         [
             *(sys.executable, "-m", "openral_remote.testing", "--listen", endpoint, "--dims", str(DIMS)),
-            *("--chunk-size", str(CHUNK), "--rate-hz", str(rate_hz), "--observation", "all"),
+            *("--chunk-size", str(CHUNK), "--rate-hz", str(rate_hz), "--observation", "all", *extra),
         ],
     )
+
+
+class Pki:
+    """A private CA, the server's certificate and the robot's, in a temporary folder."""
+
+    def __init__(self, folder: Path) -> None:
+        self.ca = make_ca(folder)
+        self.server = make_certificate(folder, "policy-server", self.ca)
+        self.robot = make_certificate(folder, "robot-1", self.ca)
+
+    def server_args(self, mutual: bool) -> list[str]:
+        files = ["--tls-ca", str(self.ca.cert), "--tls-cert", str(self.server.cert), "--tls-key", str(self.server.key)]
+        return [*files, "--mtls"] if mutual else files
+
+    def robot_tls(self, mutual: bool) -> TlsConfig:
+        if not mutual:
+            return TlsConfig(ca=str(self.ca.cert))
+        return TlsConfig(ca=str(self.ca.cert), cert=str(self.robot.cert), key=str(self.robot.key), mutual=True)
 
 
 def _zenoh(seconds: float, rate_hz: float, shared_memory: bool) -> Timings:
@@ -112,6 +136,58 @@ def _zenoh(seconds: float, rate_hz: float, shared_memory: bool) -> Timings:
         client.close()
         server.terminate()
         server.wait(10)
+
+
+SECURITY = {"TCP": None, "TLS": False, "mutual TLS": True}
+"""The links compared side by side: plain, TLS (the robot checks the server), mutual TLS (both check)."""
+
+
+def _secured(seconds: float, rate_hz: float, pki: Pki) -> dict[str, Timings]:
+    """TCP, TLS and mutual TLS round trips, the three clients asked in turn in each slot (and back to back)."""
+    servers: list[subprocess.Popen[bytes]] = []
+    clients: dict[str, RemotePolicyClient] = {}
+    try:
+        for index, (name, mutual) in enumerate(SECURITY.items()):
+            endpoint, zenoh_id = free_endpoint(), f"{index + 1}0"  # its own id: three servers of one key
+            if mutual is None:
+                servers.append(_policy_server(endpoint, rate_hz, "--zenoh-id", zenoh_id))
+                zenoh = ZenohConfig(connect=[endpoint], shared_memory=False)
+            else:
+                endpoint = endpoint.replace("tcp/", "tls/", 1)
+                servers.append(_policy_server(endpoint, rate_hz, "--zenoh-id", zenoh_id, *pki.server_args(mutual)))
+                zenoh = ZenohConfig(connect=[endpoint], shared_memory=False, tls=pki.robot_tls(mutual))
+            clients[name] = RemotePolicyClient(PolicyKeys.of(ROBOT, POLICY), zenoh, deadline_ms=2000)
+            clients[name].connect(timeout_s=30)
+        world = _world()
+        for client in clients.values():
+            assert client.infer(world).shape == (CHUNK, DIMS)
+            for _ in range(20):
+                client.infer(world)
+        period = 1.0 / rate_hz
+        count = int(seconds * rate_hz)
+        paced: dict[str, list[float]] = {name: [] for name in clients}
+        back_to_back: dict[str, list[float]] = {name: [] for name in clients}
+        start = time.perf_counter()
+        for k in range(count):
+            delay = start + k * period - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            for name, client in clients.items():
+                began = time.perf_counter()
+                client.infer(world)
+                paced[name].append((time.perf_counter() - began) * 1e3)
+        for _ in range(count):
+            for name, client in clients.items():
+                began = time.perf_counter()
+                client.infer(world)
+                back_to_back[name].append((time.perf_counter() - began) * 1e3)
+        return {name: (paced[name], back_to_back[name]) for name in clients}
+    finally:
+        for client in clients.values():
+            client.close()
+        for server in servers:
+            server.terminate()
+            server.wait(10)
 
 
 def _skill(seconds: float, rate_hz: float) -> Timings:
@@ -302,9 +378,14 @@ def main() -> None:
     print(machine_line())
     print(f"VGA BGR observation (921,600 B of pixels) + {DIMS} joints in, {CHUNK}x{DIMS} chunk out")
     print(f"paced at {args.rate_hz:g} Hz for {args.seconds:g} s, then as many back to back")
+    with tempfile.TemporaryDirectory(prefix="openral-bench-pki-") as folder:
+        secured = _secured(args.seconds, args.rate_hz, Pki(Path(folder)))
     rows = [
         ("openral / Zenoh TCP", _zenoh(args.seconds, args.rate_hz, shared_memory=False)),
         ("openral / Zenoh shared memory", _zenoh(args.seconds, args.rate_hz, shared_memory=True)),
+        ("openral / Zenoh TCP, beside TLS", secured["TCP"]),
+        ("openral / Zenoh TLS", secured["TLS"]),
+        ("openral / Zenoh mutual TLS", secured["mutual TLS"]),
         ("openral / remote_policy, TCP", _skill(args.seconds, args.rate_hz)),
         ("gRPC + pickle (LeRobot's way)", _grpc(args.seconds, args.rate_hz)),
         ("Zenoh alone, TCP (bytes echo)", _echo(args.seconds, args.rate_hz)),
@@ -320,8 +401,19 @@ def main() -> None:
         b2b = float(np.percentile(back_to_back, 50))
         print(f"{name:32s} {len(paced):5d} {p50:8.2f} {p99:8.2f} {max(paced):8.2f} {p50 / tcp_p50:18.2f} {b2b:17.2f}")
 
+    tcp_paced, tcp_b2b = secured["TCP"]
+    for name in ("TLS", "mutual TLS"):
+        paced, back_to_back = secured[name]
+        for mode, mine, theirs in (("paced", paced, tcp_paced), ("back to back", back_to_back, tcp_b2b)):
+            p50, base = float(np.percentile(mine, 50)), float(np.percentile(theirs, 50))
+            p99, base99 = float(np.percentile(mine, 99)), float(np.percentile(theirs, 99))
+            print(
+                f"{name} / TCP side by side, {mode}: p50 {p50:.2f} / {base:.2f} ms = x{p50 / base:.2f} "
+                f"({p50 - base:+.2f} ms), p99 {p99:.2f} / {base99:.2f} ms = x{p99 / base99:.2f}"
+            )
+
     floor = rows[-1][1]
-    for index, label in ((0, "openral TCP"), (2, "remote_policy skill")):
+    for index, label in ((0, "openral TCP"), (5, "remote_policy skill")):
         paced, back_to_back = rows[index][1]
         share = float(np.percentile(paced, 50) - np.percentile(floor[0], 50))
         share_b2b = float(np.percentile(back_to_back, 50) - np.percentile(floor[1], 50))

@@ -17,6 +17,14 @@ shutdown, a SIGKILL noticed by the kernel, or a silent link after the lease), wi
 a request to fail. When the token comes back, ``meta`` is fetched again on a thread of its own: a
 server that returns with another model (a different hash or shape) is refused, and stays down,
 unless ``on_model_change`` is ``accept`` and the shapes still fit.
+
+**Pinning.** The client keeps the Zenoh id of the server it first reached (the replier of its
+first ``meta``, or ``server_id`` given up front) and acts only on replies from it: a chunk from
+another id is not used, and a server that comes back under another id is refused like another
+model, unless ``on_server_change`` is ``accept``. ``openral serve`` keeps its id across restarts,
+so the real server is taken back. An id can be claimed by anyone who knows it: pinning stops a
+peer that copied the public ``meta`` from being taken for the server, not one that also copied
+the id; with TLS on, the certificate is what proves who the server is.
 """
 
 from __future__ import annotations
@@ -40,7 +48,7 @@ from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
 from openral_remote.observation import world_fields
 from openral_remote.server import ERROR_SUPERSEDED
-from openral_remote.session import NoReply, PeerError, Querier, RemoteTimeout, open_session, request
+from openral_remote.session import Answer, NoReply, PeerError, Querier, RemoteTimeout, ask, open_session
 
 try:
     import zenoh
@@ -54,6 +62,7 @@ __all__ = [
     "RemotePolicyClient",
     "RemoteSuperseded",
     "RemoteTimeout",
+    "ServerRefused",
     "ServerUnavailable",
     "check_compatible",
 ]
@@ -73,6 +82,10 @@ class RemoteSuperseded(ROSUnavailable):
     """The server dropped the request for a newer one of this client."""
 
 
+class ServerRefused(ServerUnavailable):
+    """A peer other than the pinned server answered: its reply is not acted on."""
+
+
 class RemotePolicyClient:
     """One robot's link to one served policy.
 
@@ -82,6 +95,8 @@ class RemotePolicyClient:
         deadline_ms: A request without a reply by then fails with :class:`RemoteTimeout`.
         on_model_change: ``refuse`` (default) or ``accept`` a server that returns with another model.
         jpeg_quality: Send RGB/BGR camera images as JPEG of this quality; raw when ``None``.
+        server_id: The server's Zenoh id, pinned before connecting; ``None``: the first one reached.
+        on_server_change: ``refuse`` (default) or ``accept`` (and pin) a server with another id.
     """
 
     def __init__(
@@ -92,12 +107,17 @@ class RemotePolicyClient:
         deadline_ms: float = 500.0,
         on_model_change: Literal["refuse", "accept"] = "refuse",
         jpeg_quality: int | None = None,
+        server_id: str | None = None,
+        on_server_change: Literal["refuse", "accept"] = "refuse",
     ) -> None:
         self.keys = keys
         self.zenoh = zenoh
         self.deadline_s = deadline_ms / 1e3
         self.on_model_change = on_model_change
         self.jpeg_quality = jpeg_quality
+        self.server_id = server_id
+        """The pinned server's Zenoh id: replies from any other are not acted on."""
+        self.on_server_change = on_server_change
         self.client_id = uuid.uuid4().hex[:16]
         self.meta: PolicyMeta | None = None
         self.changes: list[str] = []
@@ -119,6 +139,7 @@ class RemotePolicyClient:
 
         Raises:
             ServerUnavailable: No server became alive in time, or it did not answer ``meta``.
+            ROSConfigError: The server's Zenoh id is not the one pinned up front.
         """
         self._session = open_session(self.zenoh)
         try:
@@ -131,7 +152,8 @@ class RemotePolicyClient:
                     f"no policy server is alive at {self.keys.prefix} (connect {self.zenoh.connect}) "
                     f"after {timeout_s:g} s; start one with 'openral serve'"
                 )
-            self.meta = self.fetch_meta(timeout_s)
+            self.meta, replier = self._fetch_meta(timeout_s)
+            self._pin(replier)
             self._up = self._alive.is_set()
             if self.zenoh.shared_memory:
                 self._shm = _shm_provider()
@@ -160,28 +182,48 @@ class RemotePolicyClient:
     # -- requests --------------------------------------------------------------------------
 
     def fetch_meta(self, timeout_s: float) -> PolicyMeta:
-        """The server's ``meta`` now.
+        """The server's ``meta`` now (whoever answers it).
 
         Raises:
             ServerUnavailable: No reply, or not a ``PolicyMeta``.
         """
+        return self._fetch_meta(timeout_s)[0]
+
+    def _fetch_meta(self, timeout_s: float) -> tuple[PolicyMeta, str | None]:
+        """The server's ``meta`` and the Zenoh id of who answered it."""
         session = self._session
         if session is None:
             raise ServerUnavailable("the client is closed")
         try:
-            data = request(session, self.keys.meta, timeout_s=timeout_s)
+            data, replier = ask(session, self.keys.meta, timeout_s=timeout_s)
         except ROSUnavailable as exc:
             raise ServerUnavailable(f"no answer on {self.keys.meta} ({exc})") from None
         try:
-            return PolicyMeta.from_bytes(data)
+            return PolicyMeta.from_bytes(data), replier
         except ValueError as exc:
             raise ServerUnavailable(f"{self.keys.meta} answered something that is not policy meta: {exc}") from None
+
+    def _pin(self, replier: str | None) -> None:
+        """Pin the first server reached, or check it is the one pinned up front."""
+        if self.server_id is None or replier == self.server_id:
+            self.server_id = replier
+            return
+        if self.on_server_change == "accept":
+            _log.warning("policy server has another id; accepted", key=self.keys.prefix, zenoh_id=replier)
+            self.server_id = replier
+            return
+        raise ROSConfigError(
+            f"{self.keys.meta} was answered by Zenoh id {replier}, not the pinned server {self.server_id}",
+            field="server_id",
+            hint="if that server is the one meant, pin its id (server_id) or set on_server_change: accept",
+        )
 
     def infer(self, world: WorldState) -> np.ndarray:
         """The chunk the server computes from ``world``: ``(rows, dims)`` float64.
 
         Raises:
             ServerUnavailable: The server is down, or nobody answered (it is then marked down).
+            ServerRefused: A peer other than the pinned server answered: not acted on, the server marked down.
             RemoteTimeout: No answer before the deadline.
             RemoteSuperseded: The server dropped it for a newer request.
             PeerError: The server answered with another error (its policy failed).
@@ -222,18 +264,19 @@ class RemotePolicyClient:
         body = json.dumps({"seed": seed}).encode("utf-8")
         attachment = json.dumps({"client": self.client_id}).encode("utf-8")
         try:
-            request(self._session, self.keys.reset, body, timeout_s=self.deadline_s, attachment=attachment)
+            reply = ask(self._session, self.keys.reset, body, timeout_s=self.deadline_s, attachment=attachment)
         except PeerError as exc:
             raise _refusal(exc) from None
         except NoReply:
             raise ServerUnavailable(f"no answer on {self.keys.reset}") from None
+        self._check_replier(reply, self.keys.reset)
 
     def _round_trip(self, payload: Any, attachment: bytes) -> tuple[np.ndarray, int]:
         querier = self._querier
         if querier is None:
             raise ServerUnavailable("the client is closed")
         try:
-            data = querier.request(payload, attachment=attachment)
+            reply = querier.ask(payload, attachment=attachment)
         except PeerError as exc:
             raise _refusal(exc) from None
         except NoReply:
@@ -241,6 +284,8 @@ class RemotePolicyClient:
             if self._alive.is_set():  # its token is still there: ask for its meta rather than wait for a change
                 self._start_recheck()
             raise ServerUnavailable(f"nobody answered on {self.keys.infer}: the policy server is gone") from None
+        self._check_replier(reply, self.keys.infer)
+        data = reply.payload
         fields = decode(data)
         chunk = fields.get("chunk")
         if not isinstance(chunk, np.ndarray) or chunk.ndim != 2:
@@ -252,6 +297,15 @@ class RemotePolicyClient:
             self._start_recheck()
             raise ServerUnavailable(f"{self.keys.infer} answered from another model; checking its meta")
         return np.asarray(chunk, dtype=np.float64), len(data)  # a view of the reply: no copy, no list
+
+    def _check_replier(self, reply: Answer, key: str) -> None:
+        """Refuse a reply from anyone but the pinned server; judged as a return (its ``meta`` is read again)."""
+        if reply.replier == self.server_id:
+            return
+        self._mark_down("another server answered")
+        self._start_recheck()
+        _log.error("a reply from another server refused", key=key, zenoh_id=reply.replier, pinned=self.server_id)
+        raise ServerRefused(f"{key} was answered by Zenoh id {reply.replier}, not the pinned server {self.server_id}")
 
     def _shared(self, message: bytes) -> Any:
         """The message in shared memory when a pool is there (same-host peers then read it in place)."""
@@ -292,14 +346,14 @@ class RemotePolicyClient:
             _log.warning("policy server down", key=self.keys.prefix, why=why)
 
     def _recheck(self, generation: int) -> None:
-        """The server is alive again: take it back only if it serves what we expect.
+        """The server is alive again: take it back only if it is the pinned one and serves what we expect.
 
         Its ``meta`` is asked for until it answers, as long as its token stays and nothing newer
         happened (another return, another loss).
         """
         while True:
             try:
-                meta = self.fetch_meta(max(self.deadline_s, 1.0))
+                meta, replier = self._fetch_meta(max(self.deadline_s, 1.0))
                 break
             except ROSUnavailable as exc:
                 _log.warning("policy server alive but its meta is unreadable; asking again", error=str(exc))
@@ -310,9 +364,19 @@ class RemotePolicyClient:
         assert expected is not None
         changed = expected.differences(meta)
         refuse = bool(SHAPE_FIELDS.intersection(changed)) or (changed and self.on_model_change == "refuse")
+        stranger = replier != self.server_id
         with self._lock:
             if generation != self._generation or not self._alive.is_set():
                 return  # went down again meanwhile
+            if stranger and self.on_server_change == "refuse":
+                self._change("refused")
+                _log.error(
+                    "a policy server with another Zenoh id is alive; refused (the fallback stays in charge)",
+                    key=self.keys.prefix,
+                    zenoh_id=replier,
+                    pinned=self.server_id,
+                )
+                return
             if refuse:
                 self._change("refused")
                 _log.error(
@@ -324,6 +388,9 @@ class RemotePolicyClient:
                 return
             if changed:
                 self.meta = meta
+            if stranger:
+                _log.warning("policy server has another Zenoh id; accepted", key=self.keys.prefix, zenoh_id=replier)
+                self.server_id = replier
             self._up = True
         self._change("up")
         _log.info("policy server up", key=self.keys.prefix, model_hash=meta.model_hash[:12])
@@ -345,6 +412,8 @@ def _outcome(exc: ROSUnavailable) -> str:
         return "timeout"
     if isinstance(exc, RemoteSuperseded):
         return "superseded"
+    if isinstance(exc, ServerRefused):
+        return "refused"
     if isinstance(exc, ServerUnavailable):
         return "unavailable"
     return "error"

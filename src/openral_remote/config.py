@@ -3,20 +3,42 @@
 Defaults are chosen for a LAN: peers find each other only through the endpoints given (no
 multicast scouting), and a link that goes silent is declared dead after ``lease_ms`` (1 s, not
 Zenoh's 10 s), which is what bounds how long a robot acts on a server that vanished without a word.
+
+Security is opt-in and all-or-nothing per session: with a ``tls`` block every endpoint is a
+``tls/`` one (no plain link is left open beside it), and ``allow`` turns on Zenoh's access control
+so that only peers presenting a certificate with one of the listed common names are heard at all.
 """
 
 from __future__ import annotations
 
+import hashlib
 import re
-from typing import Literal
+from pathlib import Path
+from typing import Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 DEFAULT_PORT = 7447
 DEFAULT_SERVER_LISTEN = f"tcp/0.0.0.0:{DEFAULT_PORT}"
+DEFAULT_SERVER_LISTEN_TLS = f"tls/0.0.0.0:{DEFAULT_PORT}"
 DEFAULT_CLIENT_CONNECT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 
+ZENOH_ID = r"^[1-9a-f][0-9a-f]{0,31}$"
+"""A Zenoh id as its configuration takes it: lowercase hex, 1 to 32 digits, no leading zero."""
+
 _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|vsock)/\S+$")
+_ACL_MESSAGES = (
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_liveliness_subscriber",
+)
+"""Every message kind Zenoh's access control filters: an allowed peer may use them all, any other none."""
 
 
 def _check_endpoints(values: list[str]) -> list[str]:
@@ -26,8 +48,62 @@ def _check_endpoints(values: list[str]) -> list[str]:
     return values
 
 
+def server_zenoh_id(prefix: str) -> str:
+    """The Zenoh id a policy server serving ``prefix`` keeps across restarts unless given another.
+
+    Robots pin the id of the server they first reached; a restarted server must present it again
+    to be taken back. Derived from the key alone, it is predictable: an identity, not a secret.
+    """
+    digest = hashlib.sha256(f"openral serve {prefix}".encode()).hexdigest()
+    return digest.lstrip("0")[:32]
+
+
+class TlsConfig(BaseModel):
+    """Zenoh's TLS transport: the authority that signs every certificate, and this side's own.
+
+    Paths are taken as given (``~`` expanded; a relative one from the working directory). Keys
+    must be unencrypted PEM (Zenoh reads them without a passphrase).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    ca: str = Field(min_length=1, description="PEM certificate of the authority that signed the peers' certificates.")
+    cert: str | None = Field(
+        default=None, description="This side's PEM certificate: a server's always, a robot's under mutual TLS."
+    )
+    key: str | None = Field(default=None, description="The unencrypted PEM private key of cert.")
+    mutual: bool = Field(
+        default=False,
+        description="Both sides present a certificate signed by ca; a listener refuses a peer without one.",
+    )
+    verify_name: bool = Field(
+        default=True, description="A connecting side checks that the server's certificate names the host it dialled."
+    )
+
+    @model_validator(mode="after")
+    def _pairs(self) -> Self:
+        if (self.cert is None) != (self.key is None):
+            raise ValueError("cert and key go together: give both or neither")
+        if self.mutual and self.cert is None:
+            raise ValueError("mutual TLS needs this side's cert and key")
+        return self
+
+    def settings(self) -> dict[str, object]:
+        """Zenoh configuration paths → values (the same certificate serves listening and connecting)."""
+        out: dict[str, object] = {
+            "transport/link/tls/root_ca_certificate": _path(self.ca),
+            "transport/link/tls/enable_mtls": self.mutual,
+            "transport/link/tls/verify_name_on_connect": self.verify_name,
+        }
+        if self.cert is not None and self.key is not None:
+            for side in ("listen", "connect"):
+                out[f"transport/link/tls/{side}_certificate"] = _path(self.cert)
+                out[f"transport/link/tls/{side}_private_key"] = _path(self.key)
+        return out
+
+
 class ZenohConfig(BaseModel):
-    """One Zenoh session: how it finds peers and how fast it notices one is gone."""
+    """One Zenoh session: how it finds peers, how fast it notices one is gone, who it is and whom it trusts."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -39,12 +115,44 @@ class ZenohConfig(BaseModel):
     )
     multicast_scouting: bool = Field(default=False, description="Find peers by multicast (off: endpoints only).")
     shared_memory: bool = Field(default=True, description="Use shared memory with peers on the same host.")
+    id: str | None = Field(
+        default=None,
+        pattern=ZENOH_ID,
+        description="This session's Zenoh id (lowercase hex, up to 32 digits, no leading 0); random when unset.",
+    )
+    tls: TlsConfig | None = Field(default=None, description="Encrypt and authenticate every link with TLS.")
+    allow: list[str] = Field(
+        default_factory=list,
+        description="Certificate common names of the only peers this session exchanges anything with "
+        "(Zenoh access control; needs tls with mutual: true). Empty: no access control.",
+    )
 
     _endpoints = field_validator("connect", "listen")(_check_endpoints)
 
+    @model_validator(mode="after")
+    def _security(self) -> Self:
+        endpoints = [*self.connect, *self.listen]
+        if self.tls is None:
+            secure = [endpoint for endpoint in endpoints if endpoint.startswith("tls/")]
+            if secure:
+                raise ValueError(f"endpoint {secure[0]!r} needs a tls block (ca, cert, key)")
+        else:
+            plain = [endpoint for endpoint in endpoints if not endpoint.startswith("tls/")]
+            if plain:
+                raise ValueError(
+                    f"with tls on, every endpoint is a tls/ one; {plain[0]!r} would be a plain link beside it"
+                )
+            if self.listen and self.tls.cert is None:
+                raise ValueError("a session that listens with TLS needs tls.cert and tls.key")
+        if self.allow and (self.tls is None or not self.tls.mutual):
+            raise ValueError("allow names peers by their certificates: it needs tls with mutual: true")
+        if any(not name.strip() for name in self.allow):
+            raise ValueError("allow lists certificate common names; an empty one would match anybody")
+        return self
+
     def settings(self) -> dict[str, object]:
         """Zenoh configuration paths → values (JSON5), as ``zenoh.Config.insert_json5`` takes them."""
-        return {
+        out: dict[str, object] = {
             "mode": self.mode,
             "connect/endpoints": list(self.connect),
             "listen/endpoints": list(self.listen),
@@ -52,10 +160,44 @@ class ZenohConfig(BaseModel):
             "transport/link/tx/lease": self.lease_ms,
             "transport/shared_memory/enabled": self.shared_memory,
         }
+        if self.id is not None:
+            out["id"] = self.id
+        if self.tls is not None:
+            out.update(self.tls.settings())
+        if self.allow:
+            out["access_control"] = access_control(self.allow)
+        return out
+
+
+def access_control(common_names: list[str]) -> dict[str, object]:
+    """Zenoh's ``access_control`` block: peers with these certificate names may do anything, others nothing.
+
+    Applied by each session to its own links, in both directions: on a server it means only the
+    listed robots may query (or be answered), on a robot that only the listed server is heard.
+    """
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": [
+            {
+                "id": "openral-peers",
+                "messages": list(_ACL_MESSAGES),
+                "flows": ["ingress", "egress"],
+                "permission": "allow",
+                "key_exprs": ["**"],
+            }
+        ],
+        "subjects": [{"id": "openral-allowed", "cert_common_names": list(common_names)}],
+        "policies": [{"rules": ["openral-peers"], "subjects": ["openral-allowed"]}],
+    }
+
+
+def _path(value: str) -> str:
+    return str(Path(value).expanduser())
 
 
 class RemotePolicyParams(BaseModel):
-    """``params`` of the ``remote_policy`` skill: which server, how long to wait, what a changed model means."""
+    """``params`` of the ``remote_policy`` skill: which server, how long to wait, what a change of it means."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -72,6 +214,23 @@ class RemotePolicyParams(BaseModel):
         default="refuse",
         description="A server that comes back with another model: refuse (stay on the fallback) or accept it.",
     )
+    server_id: str | None = Field(
+        default=None,
+        pattern=ZENOH_ID,
+        description="The server's Zenoh id ('openral serve' prints it), pinned up front; "
+        "default: the id of the server first reached.",
+    )
+    on_server_change: Literal["refuse", "accept"] = Field(
+        default="refuse",
+        description="A server answering with another Zenoh id than the pinned one: refuse (stay on the "
+        "fallback) or accept it (and pin the new id).",
+    )
     jpeg_quality: int | None = Field(
         default=None, ge=1, le=95, description="Send camera images as JPEG of this quality (slow links); raw if unset."
     )
+
+    @model_validator(mode="after")
+    def _one_pin(self) -> Self:
+        if self.server_id is not None and self.on_server_change == "accept":
+            raise ValueError("server_id pins one server; on_server_change: accept would take any other")
+        return self

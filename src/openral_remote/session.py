@@ -8,6 +8,10 @@ has one answer, or fails with one of three :class:`~openral_core.errors.ROSUnava
 * :class:`PeerError`: the peer answered with an error (its text in :attr:`PeerError.text`);
 * :class:`NoReply`: nobody answered: nothing serves the key.
 
+An answer carries who gave it (:attr:`Answer.replier`, the replying session's Zenoh id), so a
+client can act only on the peer it trusts. A session with a ``tls`` block has its files checked
+(:func:`openral_remote.tls.check_tls`) before Zenoh sees them.
+
 Opening a session changes nothing else in the process (allocator tuning is
 :func:`openral_remote.allocator.keep_message_memory`, called by the entry points that want it).
 """
@@ -16,10 +20,11 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, NamedTuple
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError, ROSUnavailable
 from openral_remote.config import ZenohConfig
+from openral_remote.tls import check_tls
 
 try:
     import zenoh
@@ -52,8 +57,26 @@ class NoReply(ROSUnavailable):
     """Nobody answered the request: nothing serves the key (or what did is gone)."""
 
 
+class Answer(NamedTuple):
+    """A request's answer and who gave it.
+
+    Attributes:
+        payload: The reply's bytes.
+        replier: The Zenoh id (hex) of the session that replied; ``None`` if Zenoh did not say.
+    """
+
+    payload: bytes
+    replier: str | None
+
+
 def zenoh_config(config: ZenohConfig) -> Any:
-    """The ``zenoh.Config`` of ``config``."""
+    """The ``zenoh.Config`` of ``config`` (its TLS files checked first).
+
+    Raises:
+        ROSConfigError: A TLS file is wrong (naming it), or Zenoh refused a setting.
+    """
+    if config.tls is not None:
+        check_tls(config.tls)
     settings = zenoh.Config()
     for path, value in config.settings().items():
         try:
@@ -85,7 +108,14 @@ def open_session(config: ZenohConfig) -> Any:
 def request(
     session: Any, key: str, payload: bytes | None = None, *, timeout_s: float, attachment: bytes | None = None
 ) -> bytes:
-    """Ask ``key`` once and return the first answer's payload.
+    """The payload of :func:`ask`."""
+    return ask(session, key, payload, timeout_s=timeout_s, attachment=attachment).payload
+
+
+def ask(
+    session: Any, key: str, payload: bytes | None = None, *, timeout_s: float, attachment: bytes | None = None
+) -> Answer:
+    """Ask ``key`` once and return the first answer, with who gave it.
 
     Args:
         session: An open Zenoh session.
@@ -99,7 +129,7 @@ def request(
         PeerError: The peer answered with an error.
         NoReply: Nobody answered.
     """
-    return answer(session.get(key, payload=payload, attachment=attachment, timeout=timeout_s), key)
+    return first_answer(session.get(key, payload=payload, attachment=attachment, timeout=timeout_s), key)
 
 
 class Querier:
@@ -116,8 +146,12 @@ class Querier:
         self._querier: Any = session.declare_querier(key, timeout=timeout_s)
 
     def request(self, payload: Any = None, *, attachment: bytes | None = None) -> bytes:
-        """Ask once; ``payload`` may be ``bytes`` or a ``zenoh.ZBytes`` (shared memory). As :func:`request`."""
-        return answer(self._querier.get(payload=payload, attachment=attachment), self.key)
+        """The payload of :meth:`ask`."""
+        return self.ask(payload, attachment=attachment).payload
+
+    def ask(self, payload: Any = None, *, attachment: bytes | None = None) -> Answer:
+        """Ask once; ``payload`` may be ``bytes`` or a ``zenoh.ZBytes`` (shared memory). As :func:`ask`."""
+        return first_answer(self._querier.get(payload=payload, attachment=attachment), self.key)
 
     def close(self) -> None:
         """Undeclare the querier."""
@@ -125,7 +159,12 @@ class Querier:
 
 
 def answer(replies: Iterable[Any], key: str) -> bytes:
-    """The payload of the first of ``replies`` (what a Zenoh ``get`` yields), or its error translated.
+    """The payload of :func:`first_answer`."""
+    return first_answer(replies, key).payload
+
+
+def first_answer(replies: Iterable[Any], key: str) -> Answer:
+    """The first of ``replies`` (what a Zenoh ``get`` yields) and its replier, or its error translated.
 
     Raises:
         RemoteTimeout: Zenoh's deadline passed first.
@@ -135,7 +174,7 @@ def answer(replies: Iterable[Any], key: str) -> bytes:
     for reply in replies:
         ok = reply.ok
         if ok is not None:
-            return bytes(ok.payload.to_bytes())
+            return Answer(bytes(ok.payload.to_bytes()), _replier(reply))
         text = reply.err.payload.to_bytes().decode("utf-8", "replace")
         if text.strip().lower() == _ZENOH_TIMEOUT:
             raise RemoteTimeout(f"{key}: no answer before the deadline")
@@ -143,4 +182,21 @@ def answer(replies: Iterable[Any], key: str) -> bytes:
     raise NoReply(f"nobody answered on {key}")
 
 
-__all__ = ["NoReply", "PeerError", "Querier", "RemoteTimeout", "answer", "open_session", "request", "zenoh_config"]
+def _replier(reply: Any) -> str | None:
+    replier = reply.replier_id
+    return None if replier is None else str(replier.zid)
+
+
+__all__ = [
+    "Answer",
+    "NoReply",
+    "PeerError",
+    "Querier",
+    "RemoteTimeout",
+    "answer",
+    "ask",
+    "first_answer",
+    "open_session",
+    "request",
+    "zenoh_config",
+]

@@ -6,6 +6,10 @@ once when the skill is built (the server must be up by then, within ``connect_ti
 chunk executor asks for each chunk (one array, as decoded) on its worker thread, never on the
 tick; while the server is down (:meth:`available` is ``False``) the executor's fallback acts:
 ``hold``, a local ``skill`` (e.g. an ONNX policy) or a safe ``stop``, configured under ``executor:``.
+
+The server reached when the skill is built is pinned (its Zenoh id, or ``server_id`` given up
+front): start-up and every later return must be that server unless ``on_server_change: accept``.
+TLS files in the ``zenoh:`` block are checked when the file is validated and before connecting.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from openral_remote.client import SHAPE_FIELDS, RemotePolicyClient, check_compat
 from openral_remote.config import RemotePolicyParams
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
+from openral_remote.tls import check_tls
 from openral_rskill.anchoring import Anchor
 from openral_rskill.base import RSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
@@ -42,9 +47,12 @@ class RemotePolicySkill(RSkillBase):
         super().__init__()
         self.params = params
         self.keys = PolicyKeys.of(params.robot or robot.robot_id, params.policy)
+        self.server_id = params.server_id
+        """The pinned server's Zenoh id: the one reached at build, unless pinned up front."""
         self.client = self._new_client()
         try:  # what the policy is decides how the runner is built: ask now, then let go until configure
             self.meta: PolicyMeta = self.client.connect(params.connect_timeout_s)
+            self.server_id = self.client.server_id
         finally:
             self.client.close()
         check_compatible(self.meta, action_dims=len(robot.joint_names), rate_hz=rate_hz, field="params.policy")
@@ -54,7 +62,8 @@ class RemotePolicySkill(RSkillBase):
             version=self.meta.skill_version,
             control_mode=self.meta.control_mode,
             chunk_size=self.meta.chunk_size,
-            description=f"{self.meta.skill_id} on a policy server (model {self.meta.model_hash[:12]})",
+            description=f"{self.meta.skill_id} on a policy server (model {self.meta.model_hash[:12]}, "
+            f"Zenoh id {self.server_id})",
             observation=self.meta.observation,
         )
 
@@ -66,13 +75,16 @@ class RemotePolicySkill(RSkillBase):
         that memory for reuse (:func:`~openral_remote.allocator.keep_message_memory`), once per process.
         """
         keep_message_memory()
-        return cls(robot, validate_params(RemotePolicyParams, params, skill_id=SKILL_ID), rate_hz=rate_hz)
+        checked = validate_params(RemotePolicyParams, params, skill_id=SKILL_ID)
+        _check_files(checked)
+        return cls(robot, checked, rate_hz=rate_hz)
 
     @classmethod
     def check_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> None:
-        """Check the parameters without asking the server: what it serves is known only once it answers."""
+        """Check the parameters and TLS files without asking the server (what it serves is known once it answers)."""
         checked = validate_params(RemotePolicyParams, params, skill_id=SKILL_ID)
         PolicyKeys.of(checked.robot or robot.robot_id, checked.policy)
+        _check_files(checked)
 
     @property
     def info(self) -> RSkillInfo:
@@ -93,11 +105,14 @@ class RemotePolicySkill(RSkillBase):
             deadline_ms=params.deadline_ms,
             on_model_change=params.on_model_change,
             jpeg_quality=params.jpeg_quality,
+            server_id=self.server_id,
+            on_server_change=params.on_server_change,
         )
 
     def _on_configure(self) -> None:
         self.client = self._new_client()
-        meta = self.client.connect(self.params.connect_timeout_s)
+        meta = self.client.connect(self.params.connect_timeout_s)  # refuses a server with another id
+        self.server_id = self.client.server_id
         changed = self.meta.differences(meta)
         if changed and (self.params.on_model_change == "refuse" or SHAPE_FIELDS.intersection(changed)):
             self.client.close()
@@ -128,3 +143,9 @@ class RemotePolicySkill(RSkillBase):
             stamp_ns=world_state.stamp_ns,
             skill_id=SKILL_ID,
         )
+
+
+def _check_files(params: RemotePolicyParams) -> None:
+    """The ``zenoh.tls`` files, named by their place in the deployment."""
+    if params.zenoh.tls is not None:
+        check_tls(params.zenoh.tls, prefix="vla.params.zenoh.tls.")

@@ -133,7 +133,8 @@ def chunk_meta(skill: ChunkSkill, *, rate_hz: float, model_hash: str) -> PolicyM
 
 
 def serve(args: Any) -> None:
-    """Serve a :class:`ChunkSkill` until SIGINT or SIGTERM."""
+    """Serve a :class:`ChunkSkill` until SIGINT or SIGTERM, under the stable Zenoh id 'openral serve' would use."""
+    from openral_remote.config import TlsConfig, server_zenoh_id  # noqa: PLC0415
     from openral_remote.server import PolicyServer  # noqa: PLC0415 (Zenoh: loaded where it is used)
 
     names = [f"a{i}" for i in range(args.dims)]
@@ -149,8 +150,18 @@ def serve(args: Any) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     keep_message_memory()  # as 'openral serve' does
-    zenoh = ZenohConfig(listen=[args.listen], lease_ms=args.lease_ms)
-    with PolicyServer(skill, keys=PolicyKeys.of(ROBOT, POLICY), zenoh=zenoh, meta=meta):
+    keys = PolicyKeys.of(ROBOT, POLICY)
+    tls = None
+    if args.tls_ca is not None:
+        tls = TlsConfig(ca=args.tls_ca, cert=args.tls_cert, key=args.tls_key, mutual=args.mtls)
+    zenoh = ZenohConfig(
+        listen=[args.listen],
+        lease_ms=args.lease_ms,
+        id=args.zenoh_id or server_zenoh_id(keys.prefix),
+        tls=tls,
+        allow=args.allow,
+    )
+    with PolicyServer(skill, keys=keys, zenoh=zenoh, meta=meta):
         stop.wait()
 
 
@@ -165,6 +176,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--model-hash", default="model-a")
     parser.add_argument("--lease-ms", type=int, default=1000)
     parser.add_argument("--observation", nargs="+", default=["joint_state"], help="Fields read; 'all' for all.")
+    parser.add_argument("--zenoh-id", default=None, help="Zenoh id (default: the one derived from the key).")
+    parser.add_argument("--tls-ca", default=None, help="TLS: the CA certificate (with --tls-cert, --tls-key).")
+    parser.add_argument("--tls-cert", default=None)
+    parser.add_argument("--tls-key", default=None)
+    parser.add_argument("--mtls", action="store_true", help="Mutual TLS: clients need a certificate too.")
+    parser.add_argument("--allow", nargs="+", default=[], help="Certificate common names allowed (access control).")
     serve(parser.parse_args(argv))
 
 

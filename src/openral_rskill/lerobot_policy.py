@@ -22,7 +22,7 @@ its first ``rows`` rows used (the checkpoint's ``n_action_steps`` unless overrid
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal, Self
 
 import numpy as np
@@ -37,6 +37,8 @@ from openral_rskill.lerobot.observation import ObservationMap
 from openral_rskill.lerobot.units import JointUnits, UnitConversion, plausible_units
 
 SKILL_ID = "lerobot_policy"
+MAX_BATCH = 256
+"""Requests one forward pass takes at most (a policy server batches its robots' requests)."""
 
 
 class LeRobotPolicyParams(BaseModel):
@@ -170,6 +172,25 @@ class LeRobotPolicySkill(RSkillBase):
     def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
         worlds = request.observations(self.checkpoint.observation_steps)
         return self._infer([self.inputs.arrays(w) for w in worlds], request.world.task or "")
+
+    def serves_many_episodes(self) -> bool:
+        """A chunk policy's chunk is a function of its request; a per-tick one keeps a queue of actions.
+
+        Sampling policies (Diffusion, flow matching) draw their noise from the process's torch
+        generator: shared between robots, a run is reproducible per server, not per robot.
+        """
+        return self.checkpoint.chunk_size > 1
+
+    def batch_capacity(self) -> int:
+        return MAX_BATCH if self.checkpoint.chunk_size > 1 else 1
+
+    def _chunks_impl(self, requests: Sequence[ChunkRequest]) -> list[np.ndarray]:
+        """Several requests in one forward pass of the policy."""
+        steps = self.checkpoint.observation_steps
+        observations = [[self.inputs.arrays(w) for w in request.observations(steps)] for request in requests]
+        tasks = [request.world.task or "" for request in requests]
+        chunks = [rows[: self.rows] for rows in self._policy.chunks(observations, tasks)]
+        return chunks if self.units.identity else [self.units.to_radians(rows) for rows in chunks]
 
     def _step_impl(self, world_state: WorldState) -> Action:
         if self.checkpoint.chunk_size > 1:

@@ -209,6 +209,21 @@ def test_a_diffusion_chunk_with_history_is_lerobots_own_for_the_same_seed(
     assert np.abs(chunk - expected).max() <= TOLERANCE
 
 
+def test_act_batched_over_several_robots_gives_each_the_chunk_it_would_get_alone(
+    checkpoints: dict[str, Path], skill_of: Any
+) -> None:
+    skill = skill_of(checkpoints["act"])
+    requests = [ChunkRequest(_world(seed, task=f"task {seed}")) for seed in (11, 12, 13, 14)]
+    batched = skill.step_chunks(requests)
+    assert skill.serves_many_episodes()
+    assert skill.batch_capacity() > 1
+    alone = [skill.step_chunk(request) for request in requests]
+    for one, many in zip(alone, batched, strict=True):
+        assert many.shape == (10, 6)
+        assert np.abs(one - many).max() <= TOLERANCE
+    assert np.abs(batched[0] - batched[1]).max() > 1e-3  # each robot's own observation, not one for all
+
+
 def test_the_same_episode_seed_gives_the_same_diffusion_chunks(checkpoints: dict[str, Path], skill_of: Any) -> None:
     skill = skill_of(checkpoints["diffusion"])
     request = ChunkRequest(_world(4))

@@ -24,8 +24,9 @@ ROBOT = RobotManifest(
 )
 
 
-def tiny_model(path: Path, *, chunk: int = 3, obs_dim: int = 3) -> Path:
+def tiny_model(path: Path, *, chunk: int = 3, obs_dim: int = 3, dynamic_batch: bool = False) -> Path:
     """actions[0, j] = [obs[0] + j, obs[1] * 2]: row j of the chunk is checkable by hand."""
+    batch: int | str = "batch" if dynamic_batch else 1
     pick = np.zeros((obs_dim, 2), dtype=np.float32)
     pick[0, 0] = 1.0
     pick[1, 1] = 2.0
@@ -38,11 +39,11 @@ def tiny_model(path: Path, *, chunk: int = 3, obs_dim: int = 3) -> Path:
     graph = helper.make_graph(
         nodes,
         "tiny",
-        [helper.make_tensor_value_info("observation", TensorProto.FLOAT, [1, obs_dim])],
-        [helper.make_tensor_value_info("actions", TensorProto.FLOAT, [1, chunk, 2])],
+        [helper.make_tensor_value_info("observation", TensorProto.FLOAT, [batch, obs_dim])],
+        [helper.make_tensor_value_info("actions", TensorProto.FLOAT, [batch, chunk, 2])],
         [
             numpy_helper.from_array(pick, "pick"),
-            numpy_helper.from_array(np.array([1, 1, 2], dtype=np.int64), "row_shape"),
+            numpy_helper.from_array(np.array([-1, 1, 2], dtype=np.int64), "row_shape"),
             numpy_helper.from_array(offsets, "offsets"),
         ],
     )
@@ -139,3 +140,44 @@ def test_a_file_that_is_not_a_model_is_a_configuration_error(tmp_path: Path) -> 
     bad.write_bytes(b"not a model")
     with pytest.raises(ROSConfigError, match="cannot load"):
         OnnxPolicySkill.from_config({"model": str(bad), "observation": ["joint_state"]}, robot=ROBOT, rate_hz=10)
+
+
+def _worlds(n: int) -> list[WorldState]:
+    return [
+        WorldState(
+            stamp_ns=1,
+            joint_state=JointState(names=["a", "b"], positions=[0.1 * i, -0.2 * i]),
+            privileged=PrivilegedState(values={"block": [float(i)]}),
+        )
+        for i in range(n)
+    ]
+
+
+def test_a_dynamic_batch_model_runs_many_requests_in_one_inference_with_each_ones_chunk(tmp_path: Path) -> None:
+    model = tiny_model(tmp_path / "batched.onnx", dynamic_batch=True)
+    skill = OnnxPolicySkill.from_config(
+        {"model": str(model), "observation": ["joint_state", "privileged.block"]}, robot=ROBOT, rate_hz=10
+    )
+    skill.configure()
+    skill.activate()
+    requests = [ChunkRequest(world) for world in _worlds(5)]
+    batched = skill.step_chunks(requests)
+    assert skill.batch_capacity() > 1
+    assert skill.serves_many_episodes()
+    assert skill.step_count == 1  # one inference for the five
+    for request, chunk in zip(requests, batched, strict=True):
+        np.testing.assert_allclose(chunk, skill.step_chunk(request), rtol=0, atol=1e-6)
+    assert batched[3][2, 0] == pytest.approx(0.3 + 2)  # row j: [obs[0] + j, obs[1] * 2]
+
+
+def test_a_fixed_batch_model_answers_a_batch_one_request_at_a_time(tmp_path: Path) -> None:
+    skill = OnnxPolicySkill.from_config(
+        {"model": str(tiny_model(tmp_path / "one.onnx")), "observation": ["joint_state", "privileged.block"]},
+        robot=ROBOT,
+        rate_hz=10,
+    )
+    skill.configure()
+    skill.activate()
+    assert skill.batch_capacity() == 1
+    chunks = skill.step_chunks([ChunkRequest(world) for world in _worlds(3)])
+    assert [chunk[0, 1] for chunk in chunks] == pytest.approx([0.0, -0.4, -0.8])

@@ -124,18 +124,33 @@ class LoadedPolicy:
         ``n_obs_steps``): each is preprocessed, then they are stacked on the time axis the policy
         expects, and its queues are emptied first so the stack is what it reads.
         """
+        return self.chunks([observations], [task])[0]
+
+    def chunks(self, requests: Sequence[Sequence[dict[str, np.ndarray]]], tasks: Sequence[str]) -> list[np.ndarray]:
+        """The chunks of several requests (each its observations, oldest first) in one forward pass.
+
+        Each request is preprocessed alone, exactly as :meth:`chunk` does, then the requests are
+        concatenated on the batch axis: batched rows equal unbatched ones up to the kernels' float
+        rounding.
+        """
         with torch.inference_mode():
-            if len(observations) == 1:
-                batch = self.pre(self._raw(observations[0], task))
-            else:
-                steps = [self.pre(self._raw(o, task)) for o in observations]
-                batch = dict(steps[-1])
-                for key in self.checkpoint.inputs:
-                    batch[key] = torch.stack([s[key] for s in steps], dim=1)
-                self.policy.reset()
+            batches = [self._batch(observations, task) for observations, task in zip(requests, tasks, strict=True)]
+            batch = batches[0] if len(batches) == 1 else _concatenate(batches)
             actions = self.post(self.policy.predict_action_chunk(batch))
             self._synchronize()
-        return np.asarray(actions.detach().to("cpu", torch.float64).numpy()[0])
+        rows = actions.detach().to("cpu", torch.float64).numpy()
+        return [np.asarray(rows[i]) for i in range(len(batches))]
+
+    def _batch(self, observations: Sequence[dict[str, np.ndarray]], task: str) -> dict[str, Any]:
+        """One request as the policy reads it: a batch of one, with a time axis when it reads several steps."""
+        if len(observations) == 1:
+            return dict(self.pre(self._raw(observations[0], task)))
+        steps = [self.pre(self._raw(o, task)) for o in observations]
+        batch = dict(steps[-1])
+        for key in self.checkpoint.inputs:
+            batch[key] = torch.stack([s[key] for s in steps], dim=1)
+        self.policy.reset()
+        return batch
 
     def select(self, observation: dict[str, np.ndarray], task: str) -> np.ndarray:
         """This tick's action of a single-step policy, in its own units (``select_action``)."""
@@ -152,6 +167,20 @@ class LoadedPolicy:
     def _synchronize(self) -> None:
         if self.device == "cuda":
             torch.cuda.synchronize()
+
+
+def _concatenate(batches: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Batches of one joined on the batch axis: tensors concatenated, lists (the task texts) joined."""
+    joined: dict[str, Any] = {}
+    for key, first in batches[0].items():
+        values = [batch[key] for batch in batches]
+        if isinstance(first, torch.Tensor):
+            joined[key] = torch.cat(values, dim=0)
+        elif isinstance(first, list):
+            joined[key] = [item for value in values for item in value]
+        else:
+            joined[key] = first
+    return joined
 
 
 def _numbers(value: Any) -> np.ndarray:
