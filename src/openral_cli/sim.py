@@ -15,7 +15,8 @@ import json
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,14 @@ from openral_cli.options import json_object
 from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
 from openral_cli.session import command_span
 from openral_cli.signals import StopSignals
-from openral_core import BenchmarkRun, BenchmarkSuite, EpisodeResult, ROSRuntimeError, SimEnvironment
+from openral_core import (
+    BenchmarkRun,
+    BenchmarkSuite,
+    EpisodeResult,
+    ROSConfigError,
+    ROSRuntimeError,
+    SimEnvironment,
+)
 from openral_core.config import load_model_yaml
 from openral_core.config_files import resolve_user_path
 
@@ -226,6 +234,31 @@ def benchmark() -> None:
     default=None,
     help="Film the first episodes of each row (the suite's 'videos' count) into this folder.",
 )
+@click.option(
+    "--baseline",
+    "baseline_path",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="The JSON (--out) of a --workers 1 run of this suite on this machine: rows get speedup and efficiency.",
+)
+@click.option(
+    "--serve",
+    is_flag=True,
+    help="Load each row's policy once in a policy server; the workers ask it as remote_policy clients.",
+)
+@click.option(
+    "--serve-max-batch",
+    type=click.IntRange(1, 1024),
+    default=None,
+    help="--serve: requests one inference takes (default: one per worker).",
+)
+@click.option(
+    "--serve-gpus",
+    type=click.FloatRange(min=0),
+    default=0.0,
+    show_default=True,
+    help="--serve with --ray: GPUs for the server's Ray actor.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON document on stdout, nothing else.")
 @click.pass_context
 def benchmark_run(
@@ -237,6 +270,10 @@ def benchmark_run(
     min_success: float | None,
     out: Path | None,
     video_dir: Path | None,
+    baseline_path: Path | None,
+    serve: bool,
+    serve_max_batch: int | None,
+    serve_gpus: float,
     as_json: bool,
 ) -> None:
     """Evaluate every row of a suite; report success with 95 % intervals, latency percentiles and provenance.
@@ -244,42 +281,77 @@ def benchmark_run(
     Every row's scene and skill are built once before the first episode, so a typo in the last row
     fails at once. A row that fails while running ends the suite: the rows finished by then and the
     failed row (marked, with its error) are still written, then the command exits non-zero.
+
+    With --serve each row's policy is served once (a Ray actor with --ray) and the episodes run as
+    its remote_policy clients; with the scene's virtual_latency the outcomes are the local run's.
     """
+    started = time.perf_counter()
     build = importlib.import_module("openral_sim.build")
     evaluation = importlib.import_module("openral_sim.evaluation")
     code = EXIT_OK
     with exit_codes(bool(ctx.obj["debug"])):
         suite = BenchmarkSuite.from_yaml(config_path)
+        baseline = _load_baseline(baseline_path) if baseline_path is not None else None
         hasher = hashlib.sha256(config_path.read_bytes())
-        rows = _resolve_rows(
-            suite, config_path, build, hasher, render_all=video_dir is not None, on_ray=ray_address is not None
-        )
         results: list[dict[str, Any]] = []
         failed = []
         error: BaseException | None = None
         not_run: list[str] = []
-        with _stdout_to_stderr(as_json):
+        with (
+            _stdout_to_stderr(as_json),
+            evaluation.Evaluator(workers=workers, ray_address=ray_address) as evaluator,
+        ):
+
+            def warm_up(run: BenchmarkRun, scene: SimEnvironment) -> None:
+                # The workers start (and build the first row's scene) while this process checks the rows.
+                if not serve:  # served, a worker's skill is a client of a server that is not up yet
+                    evaluator.warm_up(evaluation.EpisodeUnit(scene, run.skill, dict(run.skill_params)))
+
+            rows = _resolve_rows(
+                suite,
+                config_path,
+                build,
+                hasher,
+                render_all=video_dir is not None,
+                on_ray=ray_address is not None,
+                warm_up=warm_up,
+            )
+            references = _references(baseline, rows) if baseline is not None else {}
+            evaluator.wait_warm()
+            startup_s = time.perf_counter() - started
             for index, (run, scene) in enumerate(rows):
-                # A few units per worker: balanced load, and each pays the env's start-up once.
-                parts = 1 if workers == 1 and ray_address is None else 2 * workers
-                units = evaluation.split_episodes(scene, run.skill, run.skill_params, scene.n_episodes, parts)
-                if video_dir is not None:
-                    units = evaluation.with_videos(units, video_dir, suite.videos)
+                row_started = time.perf_counter()
+                host: Any = None
                 try:
-                    batch = evaluation.run_units(units, workers=workers, ray_address=ray_address)
+                    skill_id, params = run.skill, dict(run.skill_params)
+                    if serve:
+                        host = _policy_host(scene, run, evaluator=evaluator, max_batch=serve_max_batch, gpus=serve_gpus)
+                        skill_id, params = host.skill_id, host.params
+                    units = evaluator.schedule(scene, skill_id, params, scene.n_episodes)
+                    if video_dir is not None:
+                        units = evaluation.with_videos(units, video_dir, suite.videos)
+                    batch = evaluator.run(units)
                 except build.SkillFailed as exc:
                     error = exc
                     results.append(_failed_row(run, scene, exc, exc.batch.episodes))
                 except (Exception, KeyboardInterrupt) as exc:
                     error = exc
                     results.append(_failed_row(run, scene, exc, []))
+                finally:
+                    served = host.close() if host is not None else None
                 if error is not None:
                     not_run = [_label(later, later_scene) for later, later_scene in rows[index + 1 :]]
                     break
+                wall_s = time.perf_counter() - row_started
                 row = {
                     **_row_head(run, scene),
                     "status": "completed",
                     **evaluation.summarize(batch.episodes, batch),
+                    **evaluation.throughput(
+                        len(batch.episodes), wall_s, evaluator.processes, references.get(_label(run, scene))
+                    ),
+                    "env_builds": sum(batch.env_builds.values()),
+                    **({"served": served} if served is not None else {}),
                     "episodes": [e.model_dump(mode="json") for e in batch.episodes],
                 }
                 threshold = run.min_success if run.min_success is not None else min_success
@@ -292,8 +364,14 @@ def benchmark_run(
         document: dict[str, Any] = {
             "suite": suite.name,
             "results": results,
+            "startup_s": startup_s,
+            "wall_s": time.perf_counter() - started,
             "provenance": _provenance(hasher.hexdigest(), workers, ray_address),
         }
+        if serve:
+            document["provenance"]["served"] = {"max_batch": serve_max_batch or workers, "gpus": serve_gpus}
+        if baseline_path is not None:
+            document["provenance"]["baseline"] = str(baseline_path)
         if error is not None:
             document["not_run"] = not_run
         text = json.dumps(document, indent=2)
@@ -302,7 +380,7 @@ def benchmark_run(
         if as_json:
             click.echo(text)
         else:
-            click.echo(_markdown_table(results))
+            click.echo(_markdown_table(results, workers if ray_address is None else None))
         if error is not None:
             raise error
         if failed:
@@ -312,11 +390,19 @@ def benchmark_run(
 
 
 def _resolve_rows(
-    suite: BenchmarkSuite, config_path: Path, build: Any, hasher: Any, *, render_all: bool, on_ray: bool
+    suite: BenchmarkSuite,
+    config_path: Path,
+    build: Any,
+    hasher: Any,
+    *,
+    render_all: bool,
+    on_ray: bool,
+    warm_up: Callable[[BenchmarkRun, SimEnvironment], None] | None = None,
 ) -> list[tuple[BenchmarkRun, SimEnvironment]]:
     """Every row's scene, with its environment and skill built once (and let go) before any episode runs.
 
     On Ray the simulators may live only on the cluster: without them here, the names are checked.
+    ``warm_up`` hears the first row's scene as soon as it is read, before any check.
 
     Raises:
         ROSConfigError: Naming the row's field (``runs[1].skill``, ``runs[0].scene``).
@@ -329,6 +415,8 @@ def _resolve_rows(
         scene = _scene(load_model_yaml(SimEnvironment, scene_path, field=field), run.n_episodes, run.seed)
         if not run.render_cameras and not render_all:
             scene = scene.model_copy(update={"cameras": []})
+        if index == 0 and warm_up is not None:
+            warm_up(run, scene)
         key = scene.model_dump_json(exclude={"name", "n_episodes", "seed"})
         fields = build.SkillFields.of_row(index)
         specs[key] = build.check_evaluation(
@@ -337,6 +425,48 @@ def _resolve_rows(
         hasher.update(scene_path.read_bytes())
         rows.append((run, scene))
     return rows
+
+
+def _load_baseline(path: Path) -> list[dict[str, Any]]:
+    """The report of a one-process run, to measure speed-ups against.
+
+    Raises:
+        ROSConfigError: Not such a report (unreadable, not JSON, or not run with ``--workers 1`` here).
+    """
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+        provenance = document["provenance"]
+        one_process = provenance["workers"] == 1 and provenance["ray"] is None
+        rows = document["results"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ROSConfigError(f"not a benchmark report: {exc}", field="--baseline") from exc
+    if not one_process:
+        raise ROSConfigError(
+            "the baseline must be a --workers 1 run without --ray (the one-process reference)", field="--baseline"
+        )
+    return list(rows)
+
+
+def _references(baseline: list[dict[str, Any]], rows: list[tuple[BenchmarkRun, SimEnvironment]]) -> dict[str, float]:
+    """Each row's episodes per second in the baseline: same label, same episodes (seeds).
+
+    Raises:
+        ROSConfigError: A row the baseline did not complete with the same seeds.
+    """
+    completed = {row.get("label"): row for row in baseline if row.get("status") == "completed"}
+    references = {}
+    for run, scene in rows:
+        label = _label(run, scene)
+        row = completed.get(label)
+        seeds = [scene.seed, scene.seed + scene.n_episodes - 1]
+        if row is None or row.get("seeds") != seeds or not row.get("episodes_per_s"):
+            raise ROSConfigError(
+                f"no completed row {label!r} with seeds {seeds} and episodes_per_s in the baseline",
+                field="--baseline",
+                hint="run the same suite with --workers 1 --out FILE first",
+            )
+        references[label] = float(row["episodes_per_s"])
+    return references
 
 
 def _label(run: BenchmarkRun, scene: SimEnvironment) -> str:
@@ -371,24 +501,33 @@ def _failed_row(
 
 def _table_line(row: dict[str, Any]) -> str:
     low, high = row["pc_success_ci95"]
-    return f"{row['label']}: {row['pc_success']:.1f} % [{low:.1f}, {high:.1f}] over {row['n_episodes']} episodes"
+    return (
+        f"{row['label']}: {row['pc_success']:.1f} % [{low:.1f}, {high:.1f}] over {row['n_episodes']} episodes "
+        f"in {row['wall_s']:.1f} s ({row['episodes_per_s']:.2f} episodes/s)"
+    )
 
 
-def _markdown_table(rows: list[dict[str, Any]]) -> str:
+def _markdown_table(rows: list[dict[str, Any]], workers: int | None) -> str:
+    """The rows as a Markdown table; efficiency reads ``—`` without a ``--baseline`` to measure it against."""
     lines = [
-        "| scene / skill | episodes | success | 95 % CI | steps to success (p50) | tick p50 / p99 ms |",
-        "|---|---|---|---|---|---|",
+        "| scene / skill | episodes | success | 95 % CI | steps to success (p50) | tick p50 / p99 ms "
+        "| episodes/s | efficiency |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         if row["status"] == "failed":
-            lines.append(f"| {row['label']} | failed | — | — | — | — |")
+            lines.append(f"| {row['label']} | failed | — | — | — | — | — | — |")
             continue
         low, high = row["pc_success_ci95"]
         steps = row["steps_to_success"]["p50"]
         tick = row["tick_ms"]
+        efficiency = "—"
+        if row["efficiency"] is not None:
+            efficiency = f"{row['efficiency']:.2f} ({row['speedup']:.2f}× on {workers})"
         lines.append(
             f"| {row['label']} | {row['n_episodes']} | {row['pc_success']:.1f} % | {low:.1f}–{high:.1f} % | "
-            f"{'—' if steps is None else f'{steps:.0f}'} | {tick['p50']:.2f} / {tick['p99']:.2f} |"
+            f"{'—' if steps is None else f'{steps:.0f}'} | {tick['p50']:.2f} / {tick['p99']:.2f} | "
+            f"{row['episodes_per_s']:.2f} | {efficiency} |"
         )
     return "\n".join(lines)
 
@@ -421,3 +560,42 @@ def _git_revision() -> str | None:
 
 
 __all__ = ["benchmark", "sim"]
+
+
+class _Host:
+    """A row's policy server (here or a Ray actor) and the ``remote_policy`` skill its workers run."""
+
+    def __init__(self, host: Any, on_ray: bool) -> None:
+        served = importlib.import_module("openral_sim.served")
+        self._host = host
+        self._ray = importlib.import_module("ray") if on_ray else None
+        self.skill_id: str = served.REMOTE_SKILL
+        self.params: dict[str, Any] = self._call("client_params")
+
+    def _call(self, method: str) -> Any:
+        if self._ray is None:
+            return getattr(self._host, method)()
+        return self._ray.get(getattr(self._host, method).remote())
+
+    def close(self) -> dict[str, int]:
+        """Stop the server; what it served."""
+        try:
+            return dict(self._call("stats"))
+        finally:
+            self._call("close")
+
+
+def _policy_host(
+    scene: SimEnvironment, run: BenchmarkRun, *, evaluator: Any, max_batch: int | None, gpus: float
+) -> _Host:
+    """Serve ``run``'s policy for ``scene``: in this process, or as a Ray actor with ``gpus`` on the evaluator's Ray."""
+    workers = evaluator.workers
+    served = importlib.import_module("openral_sim.served")
+    limits = importlib.import_module("openral_remote.admission").ServeLimits(
+        max_batch=max_batch or workers, max_clients=max(32, 2 * workers), max_pending=max(64, 4 * workers)
+    )
+    if evaluator.ray_address is None:
+        return _Host(served.PolicyHost(scene, run.skill, dict(run.skill_params), limits=limits), on_ray=False)
+    evaluator.ray()  # initialised before the actor is asked for
+    actor = served.ray_policy_host(scene, run.skill, dict(run.skill_params), limits=limits, num_gpus=gpus)
+    return _Host(actor, on_ray=True)

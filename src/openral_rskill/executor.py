@@ -302,6 +302,11 @@ class ChunkedExecutor:
         self._in_flight = None
         self._history.clear()  # a new episode's first request repeats its own first observation
         if self.virtual_delay is not None:
+            # A simulated episode starts from the latency it will see (its first request's virtual
+            # delay) and learns afresh from there: what an episode does depends on its seed alone,
+            # not on which episodes the same process ran before it.
+            self._latencies.clear()
+            self._p95 = max(0, int(self.virtual_delay(0)))
             if reset is not None:
                 reset()
             return
@@ -393,7 +398,8 @@ class ChunkedExecutor:
         if reason is not None:
             self._chunk_span(request, tick_idx, {semconv.ATTR_EXECUTOR_DISCARDED: reason})
             return
-        if request.request_id >= self.config.warmup_requests:
+        first = self._epoch_first_id if self.virtual_delay is not None else 0
+        if request.request_id - first >= self.config.warmup_requests:
             self._latencies.append(delay)
             ordered = sorted(self._latencies)  # a few dozen ints: cheaper than numpy on the tick thread
             self._p95 = ordered[math.ceil(0.95 * len(ordered)) - 1]

@@ -1,7 +1,11 @@
-"""Building and running a ``SimRunner`` from a scene, a skill id and its parameters."""
+"""Building and running a ``SimRunner`` from a scene, a skill id and its parameters, once or again and again."""
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+import socket
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -11,6 +15,7 @@ from openral_core import (
     ROSConfigError,
     ROSDependencyMissing,
     ROSSkillError,
+    RSkillState,
     SimEnvironment,
     TickResult,
     WorldState,
@@ -18,7 +23,7 @@ from openral_core import (
 from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
 from openral_runner.factory import SKILL_REGISTRY
-from openral_sim.env import EnvSpec, make_env
+from openral_sim.env import EnvSpec, SimEnv, make_env
 from openral_sim.runner import SimRunner
 
 _PARAMS_PREFIXES = ("vla.params", "params")
@@ -198,6 +203,8 @@ class EpisodeBatch:
     inference_ms: list[float] = field(default_factory=list)
     failure: str | None = None
     """Set when the skill kept failing and the fault limit stopped the episodes (see :class:`SkillFailed`)."""
+    env_builds: dict[str, int] = field(default_factory=dict)
+    """Environments built to run these episodes, by the process that ran them (``host:pid``; 0: it reused one)."""
 
     def raise_for_failure(self) -> None:
         """Raise if the episodes were stopped by a failing skill.
@@ -223,6 +230,9 @@ def run_episodes(
 ) -> EpisodeBatch:
     """Run episodes ``first_episode ..`` of ``scene`` with the skill, start to finish, and return their outcomes.
 
+    The environment and the skill are built for this call and let go at its end; :class:`SimCache`
+    keeps them for the next call instead.
+
     Args:
         observers: Make the observers of the ticks (a video writer) for the env's spaces and rate;
             closed with the runner.
@@ -237,6 +247,150 @@ def run_episodes(
     runner = build_sim_runner(
         scene, skill_id, skill_params, first_episode=first_episode, n_episodes=n_episodes, fields=fields
     )
+    try:
+        batch = _drive(runner, observers=observers, recorder=recorder, on_runner=on_runner, start_skill=True)
+    finally:
+        runner.skill.shutdown()
+    batch.env_builds = {process_name(): 1}
+    batch.raise_for_failure()
+    return batch
+
+
+class SimCache:
+    """The environment and the skills of one process, built once and reused by every run of episodes in it.
+
+    Building an environment loads its model (about a second for a MuJoCo scene) and building a
+    skill may load weights: an evaluation worker that runs slice after slice of the same scene
+    pays that once. Reuse cannot change an outcome: every episode starts from ``env.reset`` with
+    its own seed and ``skill.reset(seed=...)``, exactly as consecutive episodes of one run do.
+
+    One environment is kept (a suite's rows run one after the other): a scene that needs another
+    closes it and builds its own. A skill left in its error latch, and whatever a run that raised
+    had built, are let go and built afresh when next asked for, as a new process would.
+    """
+
+    def __init__(self) -> None:
+        self._env_key: str | None = None
+        self._env: SimEnv | None = None
+        self._skills: dict[str, RSkillBase] = {}
+        self.envs_built = 0
+        """Environments this cache has built (one per scene while the scenes keep coming back)."""
+        self._reported = 0
+
+    def run(
+        self,
+        scene: SimEnvironment,
+        skill_id: str,
+        skill_params: Mapping[str, Any] | None = None,
+        *,
+        first_episode: int = 0,
+        n_episodes: int | None = None,
+        observers: Sequence[Callable[[EnvSpec], TickObserver]] = (),
+        fields: SkillFields = OPTION_FIELDS,
+    ) -> EpisodeBatch:
+        """Run episodes ``first_episode ..`` of ``scene`` as :func:`run_episodes` does, on the kept env and skill.
+
+        Raises:
+            SkillFailed: As :func:`run_episodes`.
+        """
+        clean = False
+        try:
+            env, skill = self.prepare(scene, skill_id, skill_params, fields=fields)
+            runner = SimRunner(
+                env=env,
+                scene=scene,
+                skill=skill,
+                first_episode=first_episode,
+                n_episodes=n_episodes,
+                close_env=False,
+                fallback_skill=_fallback_skill(scene, env.spec),
+            )
+            batch = _drive(runner, observers=observers, recorder=None, on_runner=None, start_skill=False)
+            clean = True
+        finally:
+            if not clean:
+                self.close()
+            else:
+                self._drop_latched()
+        # Builds since the last report, a warm-up's (:meth:`prepare`) included.
+        batch.env_builds = {process_name(): self.envs_built - self._reported}
+        self._reported = self.envs_built
+        batch.raise_for_failure()
+        return batch
+
+    def prepare(
+        self,
+        scene: SimEnvironment,
+        skill_id: str,
+        skill_params: Mapping[str, Any] | None = None,
+        *,
+        fields: SkillFields = OPTION_FIELDS,
+    ) -> tuple[SimEnv, RSkillBase]:
+        """The scene's environment and the active skill, built unless kept from an earlier run.
+
+        Raises:
+            ROSConfigError: An unknown environment or skill, or bad parameters.
+        """
+        env = self._env_for(scene)
+        key = json.dumps([skill_id, dict(skill_params or {})], sort_keys=True, default=str)
+        skill = self._skills.get(key)
+        if skill is None:
+            skill = build_skill(scene, env.spec, skill_id, skill_params, fields=fields)
+            try:
+                skill.configure()
+                skill.activate()
+            except BaseException:
+                with contextlib.suppress(ROSSkillError):
+                    skill.shutdown()
+                raise
+            self._skills[key] = skill
+        return env, skill
+
+    def close(self) -> None:
+        """Shut the skills down and close the environment; the next run builds them again. Idempotent."""
+        skills, self._skills = list(self._skills.values()), {}
+        env, self._env, self._env_key = self._env, None, None
+        try:
+            for skill in skills:
+                with contextlib.suppress(ROSSkillError):  # a hook failing at shutdown: nothing left to do
+                    skill.shutdown()
+        finally:
+            if env is not None:
+                env.close()
+
+    def _env_for(self, scene: SimEnvironment) -> SimEnv:
+        key = scene.model_dump_json(exclude={"name", "n_episodes", "seed"})
+        if self._env is not None and key == self._env_key:
+            return self._env
+        self.close()
+        self._env = make_env(scene)
+        self._env_key = key
+        self.envs_built += 1
+        return self._env
+
+    def _drop_latched(self) -> None:
+        """Let go of the skills a run left in their error latch (built afresh when next asked for)."""
+        for key, skill in list(self._skills.items()):
+            if skill.state is not RSkillState.ACTIVE:
+                del self._skills[key]
+                with contextlib.suppress(ROSSkillError):
+                    skill.shutdown()
+
+
+def process_name() -> str:
+    """This process, as ``host:pid``: where a slice of episodes ran."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _drive(
+    runner: SimRunner,
+    *,
+    observers: Sequence[Callable[[EnvSpec], TickObserver]],
+    recorder: Callable[[EnvSpec], TickObserver] | None,
+    on_runner: Callable[[SimRunner], None] | None,
+    start_skill: bool,
+) -> EpisodeBatch:
+    """Attach the observers, run the runner's episodes and deactivate it; the failure is set, not raised."""
     made: list[TickObserver] = []
     try:
         if recorder is not None:
@@ -246,26 +400,25 @@ def run_episodes(
             made.append(make(runner.env.spec))
             runner.observers.append(made[-1])
     except BaseException:
-        runner.env.close()
+        if runner.close_env:
+            runner.env.close()
         for observer in made:
             observer.close()
         raise
-    skill = runner.skill
     batch = EpisodeBatch(episodes=runner.episode_results)
     runner.observers.append(_StepCollector(batch))
     try:
-        skill.configure()
-        skill.activate()
+        if start_skill:
+            runner.skill.configure()
+            runner.skill.activate()
         runner.activate()
         if on_runner is not None:
             on_runner(runner)
-        ceiling = runner.n_episodes * (scene.max_steps + 1) + 1
+        ceiling = runner.n_episodes * (runner.scene.max_steps + 1) + 1
         runner.run(max_ticks=ceiling)
     finally:
         runner.deactivate()
-        skill.shutdown()
     batch.failure = runner.failure
-    batch.raise_for_failure()
     return batch
 
 

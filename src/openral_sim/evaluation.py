@@ -2,26 +2,38 @@
 
 Episode ``i`` of a scene is reset with seed ``scene.seed + i`` whatever runs it, so splitting the
 episodes into units and running them anywhere gives the same outcomes as one process would.
-Ray is imported only when asked for.
+
+A process that runs units keeps what it built (:class:`~openral_sim.build.SimCache`): its first
+unit of a scene builds the environment and the skill, the next ones only reset them. So the units
+can be small (one episode each when several processes share the work) and pulled by whichever
+process is free, which keeps every process busy until the end, and start-up is paid once per
+process rather than once per unit. Ray is imported only when asked for.
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import multiprocessing
+import multiprocessing.util
+import os
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from types import TracebackType
 from typing import Any
 
 import numpy as np
+import structlog
 
 from openral_core import EpisodeResult, ROSConfigError, ROSDependencyMissing, SimEnvironment
 from openral_observability.observer import TickObserver
-from openral_sim.build import EpisodeBatch, SkillFailed, run_episodes
+from openral_sim.build import EpisodeBatch, SimCache, SkillFailed
 from openral_sim.env import EnvSpec
+
+_log = structlog.get_logger(__name__)
 
 WILSON_Z_95 = 1.959963984540054
 
@@ -66,19 +78,53 @@ def split_episodes(
     ]
 
 
+def schedule_episodes(
+    scene: SimEnvironment, skill_id: str, skill_params: Mapping[str, Any], n_episodes: int, processes: int
+) -> list[EpisodeUnit]:
+    """The units for ``processes`` processes that each pull the next unit when free, largest first.
+
+    One process gets one unit (it stops at the first fault limit, as a single run does). Several
+    share the episodes by factoring: each unit takes a ``1 / (2 * processes)`` share of the
+    episodes not yet handed out, at least one. Early units are large, so there are few of them
+    (each run of a unit starts with a full garbage collection, tens of ms), and the last ones are
+    single episodes, so the processes finish together.
+    """
+    if processes <= 1:
+        return split_episodes(scene, skill_id, skill_params, n_episodes, 1)
+    units = []
+    first = 0
+    while first < n_episodes:
+        size = max(1, math.ceil((n_episodes - first) / (2 * processes)))
+        units.append(EpisodeUnit(scene, skill_id, dict(skill_params), first, size))
+        first += size
+    return units
+
+
 def run_unit(unit: EpisodeUnit) -> EpisodeBatch:
-    """Run one unit start to finish (in whatever process or Ray worker calls this).
+    """Run one unit (in whatever process or Ray worker calls this) on this process's kept env and skill.
 
     A skill that kept failing is reported in the batch (``failure``), not raised: the caller
     merges every unit's episodes first, then raises.
     """
+    return _run_unit(unit, process_cache())
+
+
+@functools.cache
+def process_cache() -> SimCache:
+    """This process's environments and skills: built by its first unit of a scene, closed when it exits."""
+    cache = SimCache()
+    multiprocessing.util.Finalize(None, cache.close, exitpriority=0)  # at exit, in a worker process too
+    return cache
+
+
+def _run_unit(unit: EpisodeUnit, cache: SimCache) -> EpisodeBatch:
     observers = []
     if unit.video_dir is not None and unit.first_episode < unit.videos and unit.scene.cameras:
         observers.append(
             video_writer(unit.scene, Path(unit.video_dir), unit.videos, f"{unit.scene.name}_{unit.skill_id}")
         )
     try:
-        return run_episodes(
+        return cache.run(
             unit.scene,
             unit.skill_id,
             unit.skill_params,
@@ -88,6 +134,22 @@ def run_unit(unit: EpisodeUnit) -> EpisodeBatch:
         )
     except SkillFailed as exc:
         return exc.batch
+
+
+def _warm_worker(unit: EpisodeUnit, ready: Any) -> None:
+    """A worker's initializer: build ``unit``'s environment and skill as the process starts, then say so."""
+    try:
+        _warm(process_cache(), unit)
+    finally:
+        ready.release()
+
+
+def _warm(cache: SimCache, unit: EpisodeUnit) -> None:
+    """Build ``unit``'s environment and skill in ``cache``; a failure is met again, and reported, by the run."""
+    try:
+        cache.prepare(unit.scene, unit.skill_id, unit.skill_params)
+    except Exception as exc:
+        _log.debug("warm-up failed; the first unit builds instead", error=str(exc))
 
 
 def video_writer(scene: SimEnvironment, folder: Path, episodes: int, prefix: str) -> Callable[[EnvSpec], TickObserver]:
@@ -120,33 +182,146 @@ def with_videos(units: Sequence[EpisodeUnit], folder: Path, videos: int) -> list
     return [replace(unit, video_dir=str(folder), videos=videos) for unit in units]
 
 
-def run_units(units: Sequence[EpisodeUnit], *, workers: int = 1, ray_address: str | None = None) -> EpisodeBatch:
-    """Run every unit and merge the results in episode order.
+class Evaluator:
+    """Runs units here, in worker processes that live as long as the evaluator (every row of a suite), or on Ray.
 
     Args:
         workers: Processes on this machine (spawned, so no simulator state is shared); 1 runs here.
         ray_address: Run the units as Ray tasks: ``auto`` (a running cluster), ``local`` (start
             one here), or a cluster address (``ray://host:10001``). A Ray already initialised in
-            this process is used as it is.
+            this process is used as it is. A Ray worker process keeps what it built as a local
+            worker does.
+    """
+
+    def __init__(self, *, workers: int = 1, ray_address: str | None = None) -> None:
+        self.workers = workers
+        self.ray_address = ray_address
+        self._here = SimCache()
+        self._pool: ProcessPoolExecutor | None = None
+        self._warm_ready: Any = None
+        self._warming: list[Future[int]] = []
+        self._ray_run: Any = None
+
+    @property
+    def processes(self) -> int | None:
+        """How many processes share the units: ``workers``, or ``None`` on Ray (the cluster decides)."""
+        return None if self.ray_address is not None else self.workers
+
+    def schedule(
+        self, scene: SimEnvironment, skill_id: str, skill_params: Mapping[str, Any], n_episodes: int
+    ) -> list[EpisodeUnit]:
+        """A row's units (:func:`schedule_episodes`) for this evaluator's processes; on Ray, the cluster's CPUs."""
+        processes = self.processes
+        if processes is None:
+            ray, _ = self._ray()
+            processes = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        return schedule_episodes(scene, skill_id, skill_params, n_episodes, processes)
+
+    def warm_up(self, unit: EpisodeUnit) -> None:
+        """Build ``unit``'s environment and skill where its episodes will run, before they are asked for.
+
+        Worker processes are started now, each building them as it starts, and this returns at
+        once: their start-up (interpreter, imports, model load) overlaps whatever this process
+        does next, such as checking a suite's rows; :meth:`wait_warm` waits for the end of it.
+        In one process they are built here, now. Best effort: what fails here fails again in
+        the run, which reports it. Nothing happens on Ray.
+        """
+        if self.processes is None:
+            return
+        if self.workers <= 1:
+            _warm(self._here, unit)
+        elif self._pool is None:
+            context = multiprocessing.get_context("spawn")
+            self._warm_ready = context.Semaphore(0)
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.workers,
+                mp_context=context,
+                initializer=_warm_worker,
+                initargs=(unit, self._warm_ready),
+            )
+            # A worker process starts at a submit that finds none idle: one submit each starts them all.
+            self._warming = [self._pool.submit(os.getpid) for _ in range(self.workers)]
+
+    def wait_warm(self) -> None:
+        """Wait until every worker started by :meth:`warm_up` has built what it was given (or failed to)."""
+        ready, self._warm_ready = self._warm_ready, None
+        waiting = self.workers if ready is not None else 0
+        while waiting:
+            if ready.acquire(timeout=0.1):
+                waiting -= 1
+            elif any(future.done() and future.exception() is not None for future in self._warming):
+                return  # a worker died starting: the run reports the broken pool
+
+    def run(self, units: Sequence[EpisodeUnit]) -> EpisodeBatch:
+        """Run every unit and merge the results in episode order.
+
+        Raises:
+            SkillFailed: The skill kept failing in some unit (every unit's episodes are in its ``batch``).
+        """
+        if self.ray_address is not None:
+            batches = self._run_on_ray(units)
+        elif self.workers > 1 and len(units) > 1:
+            if self._pool is None:
+                context = multiprocessing.get_context("spawn")
+                self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context)
+            batches = list(self._pool.map(run_unit, units))
+        else:
+            batches = []
+            for unit in units:
+                batches.append(_run_unit(unit, self._here))
+                if batches[-1].failure is not None:
+                    break  # as one process running every episode stops at the fault limit
+        merged = merge_batches(batches)
+        merged.raise_for_failure()
+        return merged
+
+    def close(self) -> None:
+        """Stop the worker processes (each closes what it built) and close what was built here. Idempotent."""
+        pool, self._pool = self._pool, None
+        try:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+        finally:
+            self._here.close()
+
+    def __enter__(self) -> Evaluator:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, traceback: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def _run_on_ray(self, units: Sequence[EpisodeUnit]) -> list[EpisodeBatch]:
+        ray, remote = self._ray()
+        return list(ray.get([remote.remote(unit) for unit in units]))
+
+    def ray(self) -> Any:
+        """The ``ray`` module, initialised at this evaluator's address (for what runs beside the tasks)."""
+        return self._ray()[0]
+
+    def _ray(self) -> tuple[Any, Any]:
+        """Ray, initialised, and :func:`run_unit` as its remote function."""
+        if self._ray_run is None:
+            try:
+                import ray  # noqa: PLC0415
+            except ImportError as exc:
+                raise ROSDependencyMissing("ray", extra="ray", needed_for="evaluating on a Ray cluster") from exc
+            if not ray.is_initialized():
+                address = None if self.ray_address == "local" else self.ray_address
+                ray.init(address=address, include_dashboard=False, log_to_driver=False)
+            self._ray_run = (ray, ray.remote(run_unit))
+        return self._ray_run  # type: ignore[no-any-return]
+
+
+def run_units(units: Sequence[EpisodeUnit], *, workers: int = 1, ray_address: str | None = None) -> EpisodeBatch:
+    """Run every unit with a one-off :class:`Evaluator` (its worker processes end with the call).
 
     Raises:
         SkillFailed: The skill kept failing in some unit (every unit's episodes are in its ``batch``).
     """
-    if ray_address is not None:
-        batches = _run_on_ray(units, ray_address)
-    elif workers > 1 and len(units) > 1:
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-            batches = list(pool.map(run_unit, units))
-    else:
-        batches = []
-        for unit in units:
-            batches.append(run_unit(unit))
-            if batches[-1].failure is not None:
-                break  # as one process running every episode stops at the fault limit
-    merged = merge_batches(batches)
-    merged.raise_for_failure()
-    return merged
+    with Evaluator(workers=workers, ray_address=ray_address) as evaluator:
+        return evaluator.run(units)
 
 
 def merge_batches(batches: Sequence[EpisodeBatch]) -> EpisodeBatch:
@@ -156,21 +331,33 @@ def merge_batches(batches: Sequence[EpisodeBatch]) -> EpisodeBatch:
         merged.episodes.extend(batch.episodes)
         merged.tick_ms.extend(batch.tick_ms)
         merged.inference_ms.extend(batch.inference_ms)
+        for process, built in batch.env_builds.items():
+            merged.env_builds[process] = merged.env_builds.get(process, 0) + built
         if merged.failure is None:
             merged.failure = batch.failure
     merged.episodes.sort(key=lambda e: e.episode_idx)
     return merged
 
 
-def _run_on_ray(units: Sequence[EpisodeUnit], address: str) -> list[EpisodeBatch]:
-    try:
-        import ray  # noqa: PLC0415
-    except ImportError as exc:
-        raise ROSDependencyMissing("ray", extra="ray", needed_for="evaluating on a Ray cluster") from exc
-    if not ray.is_initialized():
-        ray.init(address=None if address == "local" else address, include_dashboard=False, log_to_driver=False)
-    remote = ray.remote(run_unit)
-    return list(ray.get([remote.remote(unit) for unit in units]))
+def throughput(
+    n_episodes: int, wall_s: float, processes: int | None, one_process_per_s: float | None = None
+) -> dict[str, float | None]:
+    """How fast episodes ran, as a report carries it.
+
+    ``episodes_per_s`` is ``n_episodes / wall_s`` and ``episodes_per_s_per_worker`` divides it by
+    the processes (``None`` on Ray, where the cluster decides). ``speedup`` and ``efficiency``
+    (speed-up ÷ processes) need the episodes per second that one process reached on the same
+    episodes, measured, not assumed: without it they are ``None``.
+    """
+    per_s = n_episodes / wall_s if wall_s > 0 else 0.0
+    speedup = per_s / one_process_per_s if one_process_per_s else None
+    return {
+        "wall_s": wall_s,
+        "episodes_per_s": per_s,
+        "episodes_per_s_per_worker": per_s / processes if processes else None,
+        "speedup": speedup,
+        "efficiency": speedup / processes if speedup is not None and processes else None,
+    }
 
 
 def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = None) -> dict[str, Any]:

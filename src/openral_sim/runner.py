@@ -60,6 +60,8 @@ class SimRunner(SkillRunnerBase):
         first_episode: Global index of this runner's first episode: episode ``i`` uses seed
             ``scene.seed + i``, so a slice of episodes run anywhere reproduces the same outcomes.
         n_episodes: Episodes to run (the scene's count by default).
+        close_env: Close ``env`` on ``deactivate``; ``False`` when the env outlives the runner (an
+            evaluation worker keeps its env for the next slice of episodes).
         **base_kwargs: ``InferenceRunnerBase`` options; free-running unless the scene sets ``rate_hz``.
     """
 
@@ -72,6 +74,7 @@ class SimRunner(SkillRunnerBase):
         safety_client: SafetyClient | None = None,
         first_episode: int = 0,
         n_episodes: int | None = None,
+        close_env: bool = True,
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("runner_name", scene.name)
@@ -88,6 +91,7 @@ class SimRunner(SkillRunnerBase):
             **base_kwargs,
         )
         self.env = env
+        self.close_env = close_env
         self.scene = scene
         self.first_episode = first_episode
         self.n_episodes = scene.n_episodes if n_episodes is None else n_episodes
@@ -110,7 +114,7 @@ class SimRunner(SkillRunnerBase):
         self._failure = None
 
     def deactivate(self) -> None:
-        """End an episode under way (as stopped: not successful, and kept), close the observers and the env."""
+        """End an episode under way (as stopped: not successful, and kept), close the observers and the owned env."""
         if self._episode is not None:
             self._finish_episode("stopped", success=False)
         super().deactivate()
@@ -121,7 +125,8 @@ class SimRunner(SkillRunnerBase):
                     observer.close()
                 except Exception as exc:  # one failing close must not keep the others open
                     _log.warning("observer close failed", observer=type(observer).__name__, error=str(exc))
-            self.env.close()
+            if self.close_env:
+                self.env.close()
 
     def _should_terminate(self) -> bool:
         if self.stop_requested is StopReason.FAULTS:

@@ -182,3 +182,83 @@ def test_benchmark_writes_the_finished_rows_and_the_failed_one_when_a_row_fails_
     assert "pc_success" not in failed  # a broken skill has no success rate, not 0 %
     assert [e["ended_by"] for e in failed["episodes"]] == ["faults"]
     assert document["not_run"] == ["after"]
+
+
+@pytest.mark.slow
+def test_benchmark_run_reports_episodes_per_second_and_efficiency_against_a_one_worker_baseline(
+    tmp_path: Path,
+) -> None:
+    suite = _suite(tmp_path, f"{{scene: {MOCK_SCENE}, skill: mock_reach_expert, n_episodes: 6}}")
+    one, two = tmp_path / "one.json", tmp_path / "two.json"
+    alone = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--out", str(one)])
+    assert alone.exit_code == 0, alone.output
+    (reference,) = json.loads(one.read_text())["results"]
+    assert reference["episodes_per_s"] == pytest.approx(6 / reference["wall_s"])
+    assert reference["episodes_per_s_per_worker"] == reference["episodes_per_s"]
+    assert reference["speedup"] is None  # nothing measured to compare with
+    assert reference["efficiency"] is None
+    assert reference["env_builds"] == 1
+
+    result = CliRunner().invoke(
+        cli,
+        ["benchmark", "run", "--config", str(suite), "--workers", "2", "--baseline", str(one), "--out", str(two)],
+    )
+    assert result.exit_code == 0, result.output
+    document = json.loads(two.read_text())
+    (row,) = document["results"]
+    untimed = [{k: v for k, v in e.items() if k != "timing"} for e in row["episodes"]]
+    assert untimed == [{k: v for k, v in e.items() if k != "timing"} for e in reference["episodes"]]
+    assert row["episodes_per_s_per_worker"] == pytest.approx(row["episodes_per_s"] / 2)
+    assert row["speedup"] == pytest.approx(row["episodes_per_s"] / reference["episodes_per_s"])
+    assert row["efficiency"] == pytest.approx(row["speedup"] / 2)
+    assert 1 <= row["env_builds"] <= 2  # at most once per worker
+    assert document["startup_s"] + row["wall_s"] <= document["wall_s"]
+    assert f"{row['episodes_per_s']:.2f} | {row['efficiency']:.2f} ({row['speedup']:.2f}× on 2) |" in result.output
+
+    # A report of several workers is no one-process reference.
+    refused = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--baseline", str(two)])
+    assert refused.exit_code == 2
+    assert "error: --baseline: the baseline must be a --workers 1 run" in refused.output
+
+
+def test_benchmark_refuses_a_baseline_without_the_suites_rows(tmp_path: Path) -> None:
+    baseline = tmp_path / "base.json"
+    baseline.write_text(json.dumps({"results": [], "provenance": {"workers": 1, "ray": None}}))
+    suite = _suite(tmp_path, f"{{scene: {MOCK_SCENE}, skill: zero, n_episodes: 2}}")
+    result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--baseline", str(baseline)])
+    assert result.exit_code == 2
+    assert "error: --baseline: no completed row 'mock_reach/zero' with seeds [0, 1]" in result.output
+
+
+PICK_SCENE = ROOT / "scenes" / "sim" / "so101_pick.yaml"
+PICK_POLICY = ROOT / "models" / "so101_pick_mlp.onnx"
+
+
+@pytest.mark.slow
+def test_benchmark_run_served_loads_the_policy_once_and_gives_the_local_outcomes(tmp_path: Path) -> None:
+    suite = _suite(
+        tmp_path,
+        f"{{scene: {PICK_SCENE}, skill: onnx_policy, skill_params: {{model: {PICK_POLICY}}}, n_episodes: 4}}",
+    )
+    local_out, served_out = tmp_path / "local.json", tmp_path / "served.json"
+    local = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--out", str(local_out)])
+    assert local.exit_code == 0, local.output
+    served = CliRunner().invoke(
+        cli, ["benchmark", "run", "--config", str(suite), "--workers", "2", "--serve", "--out", str(served_out)]
+    )
+    assert served.exit_code == 0, served.output
+    (reference,) = json.loads(local_out.read_text())["results"]
+    document = json.loads(served_out.read_text())
+    (row,) = document["results"]
+    untimed = [{k: v for k, v in e.items() if k != "timing"} for e in row["episodes"]]
+    assert untimed == [{k: v for k, v in e.items() if k != "timing"} for e in reference["episodes"]]
+    assert row["served"]["served"] > 4  # every chunk came from the one server
+    assert row["served"]["largest_batch"] >= 1
+    assert document["provenance"]["served"] == {"max_batch": 2, "gpus": 0.0}
+
+
+def test_benchmark_refuses_to_serve_a_policy_of_one_row_per_request(tmp_path: Path) -> None:
+    suite = _suite(tmp_path, f"{{scene: {PICK_SCENE}, skill: so101_pick_expert, n_episodes: 2}}")
+    result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--serve"])
+    assert result.exit_code != 0
+    assert "cannot be served" in result.output

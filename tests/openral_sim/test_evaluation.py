@@ -1,4 +1,5 @@
-"""Evaluation units: the Wilson interval, splitting, and identical outcomes in one process, two workers and Ray."""
+"""Evaluation units: the Wilson interval, splitting, identical outcomes in one process, two workers and Ray, and
+workers that build each environment once."""
 
 from __future__ import annotations
 
@@ -10,8 +11,17 @@ import sys
 import pytest
 
 from openral_core import SimEnvironment
-from openral_sim.build import SkillFailed
-from openral_sim.evaluation import run_units, split_episodes, summarize, wilson_interval
+from openral_sim.build import SkillFailed, process_name
+from openral_sim.evaluation import (
+    EpisodeUnit,
+    Evaluator,
+    run_units,
+    schedule_episodes,
+    split_episodes,
+    summarize,
+    throughput,
+    wilson_interval,
+)
 
 SCENE = SimEnvironment(
     name="reach", env="mock", task="reach", success_key="is_success", max_steps=25, n_episodes=8, seed=3
@@ -32,6 +42,71 @@ def test_split_covers_every_episode_once_in_order() -> None:
     covered = [i for u in units for i in range(u.first_episode, u.first_episode + u.n_episodes)]
     assert covered == list(range(8))
     assert len(split_episodes(SCENE, "zero", {}, 2, 5)) == 2
+
+
+def test_factoring_hands_out_every_episode_once_largest_units_first_and_single_episodes_last() -> None:
+    units = schedule_episodes(SCENE, "zero", {}, 48, 2)
+    covered = [i for u in units for i in range(u.first_episode, u.first_episode + u.n_episodes)]
+    assert covered == list(range(48))
+    sizes = [u.n_episodes for u in units]
+    assert sizes == sorted(sizes, reverse=True)
+    assert sizes[0] == 12  # a quarter of the episodes: half of them shared by the two processes
+    assert sizes[-4:] == [1, 1, 1, 1]
+    assert len(units) <= 12  # few units: each costs a run's start
+    assert [u.n_episodes for u in schedule_episodes(SCENE, "zero", {}, 48, 1)] == [48]
+    assert [u.n_episodes for u in schedule_episodes(SCENE, "zero", {}, 3, 16)] == [1, 1, 1]
+
+
+def test_throughput_has_no_speedup_without_a_measured_one_process_rate() -> None:
+    alone = throughput(48, 12.0, 2)
+    assert alone == {
+        "wall_s": 12.0,
+        "episodes_per_s": 4.0,
+        "episodes_per_s_per_worker": 2.0,
+        "speedup": None,
+        "efficiency": None,
+    }
+    measured = throughput(48, 12.0, 2, one_process_per_s=2.5)
+    assert measured["speedup"] == pytest.approx(1.6)
+    assert measured["efficiency"] == pytest.approx(0.8)
+    assert throughput(48, 12.0, None, one_process_per_s=2.5)["efficiency"] is None  # Ray: processes unknown
+
+
+def test_one_process_builds_the_environment_once_for_all_its_units_and_rows() -> None:
+    with Evaluator() as evaluator:
+        first = evaluator.run(split_episodes(SCENE, "random", {}, 8, 4))
+        second = evaluator.run(split_episodes(SCENE, "zero", {}, 2, 2))
+    assert first.env_builds == {process_name(): 1}
+    assert second.env_builds == {process_name(): 0}
+
+
+@pytest.mark.slow
+def test_worker_processes_build_each_environment_once_and_keep_it_for_every_later_unit_and_row() -> None:
+    here = run_units(split_episodes(SCENE, "random", {}, 8, 1)).episodes
+    with Evaluator(workers=2) as evaluator:
+        first = evaluator.run(split_episodes(SCENE, "random", {}, 8, 8))  # one episode a unit
+        later_row = SCENE.model_copy(update={"seed": 20})
+        second = evaluator.run(split_episodes(later_row, "zero", {}, 6, 6))
+    assert [e.outcome() for e in first.episodes] == [e.outcome() for e in here]
+    processes = set(first.env_builds) | set(second.env_builds)
+    assert 1 <= len(processes) <= 2
+    assert process_name() not in processes
+    # Every worker built the environment once, whichever units and rows it ran.
+    assert [first.env_builds.get(p, 0) + second.env_builds.get(p, 0) for p in processes] == [1] * len(processes)
+
+
+@pytest.mark.slow
+def test_warmed_up_workers_run_their_units_on_the_environment_the_warm_up_built() -> None:
+    with Evaluator(workers=2) as evaluator:
+        evaluator.warm_up(EpisodeUnit(SCENE, "random", {}))
+        batch = evaluator.run(split_episodes(SCENE, "random", {}, 8, 8))
+    # The warm-up's build is reported with the worker's first unit, and is the only one.
+    assert batch.env_builds
+    assert set(batch.env_builds.values()) == {1}
+    # A warm-up that cannot build leaves the run to build, and to report what fails.
+    with Evaluator(workers=2) as evaluator:
+        evaluator.warm_up(EpisodeUnit(SCENE, "randm", {}))
+        assert len(evaluator.run(split_episodes(SCENE, "zero", {}, 4, 4)).episodes) == 4
 
 
 def test_summary_uses_lerobots_names_and_the_interval() -> None:
@@ -84,6 +159,7 @@ scene = SimEnvironment.model_validate_json({scene!r})
 ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
 try:
     batch = run_units(split_episodes(scene, "random", {{}}, 8, 4), ray_address="local")
+    builds = batch.env_builds
     try:
         run_units(split_episodes(scene, "so101_pick_expert", {{}}, 8, 4), ray_address="local")
         failure = None
@@ -91,7 +167,7 @@ try:
         failure = [str(exc), [e.ended_by for e in exc.batch.episodes]]
 finally:
     ray.shutdown()
-print(json.dumps([[e.outcome() for e in batch.episodes], failure]))
+print(json.dumps([[e.outcome() for e in batch.episodes], failure, builds]))
 """
 
 
@@ -104,8 +180,10 @@ def test_ray_gives_the_outcomes_of_one_process_and_reports_a_failing_skill() -> 
     code = RAY_RUN.format(scene=SCENE.model_dump_json())
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    on_ray, failure = json.loads(proc.stdout.strip().splitlines()[-1])
+    on_ray, failure, builds = json.loads(proc.stdout.strip().splitlines()[-1])
     assert on_ray == [e.outcome() for e in here]
+    assert builds
+    assert set(builds.values()) == {1}  # a Ray worker keeps its environment for its next tasks
     # A skill failing on every step is an error on Ray too, with each unit's episode ended by the faults.
     assert failure is not None
     message, ended_by = failure

@@ -65,4 +65,4 @@ def test_training_reduces_the_loss_and_the_tool_writes_metadata(dataset: Path, t
     metadata = session.get_modelmeta().custom_metadata_map
     assert metadata["chunk_size"] == "4"
     assert json.loads(metadata["observation"]) == ["x", "y", "target_x", "target_y"]
-    assert session.get_outputs()[0].shape == [1, 4, 2]
+    assert session.get_outputs()[0].shape == ["batch", 4, 2]  # a server batches many robots through it
