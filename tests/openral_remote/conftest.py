@@ -6,6 +6,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
+from openral_remote.client import RemotePolicyClient
 from openral_remote.config import ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.testing import POLICY, ROBOT, free_endpoint
@@ -76,3 +77,19 @@ def keys() -> PolicyKeys:
 @pytest.fixture
 def client_zenoh(endpoint: str) -> ZenohConfig:
     return ZenohConfig(connect=[endpoint])
+
+
+@pytest.fixture
+def client(keys: PolicyKeys, client_zenoh: ZenohConfig) -> Iterator[Callable[..., RemotePolicyClient]]:
+    """Connected clients of the test server (closed after the test); keyword arguments go to the client."""
+    made: list[RemotePolicyClient] = []
+
+    def connect(deadline_ms: float = 1000.0, **kwargs: object) -> RemotePolicyClient:
+        remote = RemotePolicyClient(keys, client_zenoh, deadline_ms=deadline_ms, **kwargs)  # type: ignore[arg-type]
+        made.append(remote)
+        remote.connect(timeout_s=20.0)
+        return remote
+
+    yield connect
+    for remote in made:
+        remote.close()

@@ -8,37 +8,13 @@ import pytest
 
 from openral_core import JointState, WorldState
 from openral_remote.client import RemotePolicyClient, RemoteSuperseded, RemoteTimeout, ServerUnavailable
-from openral_remote.testing import ChunkSkill
+from openral_remote.testing import ChunkSkill, wait_for
 
 pytestmark = pytest.mark.timeout(120)
 
 
 def _world(q=(0.1, -0.2)) -> WorldState:
     return WorldState(stamp_ns=1, joint_state=JointState(names=["a0", "a1"], positions=list(q)))
-
-
-def _wait_for(condition, timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.005)
-    return condition()
-
-
-@pytest.fixture
-def client(keys, client_zenoh):
-    made = []
-
-    def connect(deadline_ms: float = 1000.0, **kwargs) -> RemotePolicyClient:
-        remote = RemotePolicyClient(keys, client_zenoh, deadline_ms=deadline_ms, **kwargs)
-        remote.connect(timeout_s=20.0)
-        made.append(remote)
-        return remote
-
-    yield connect
-    for remote in made:
-        remote.close()
 
 
 def test_a_round_trip_returns_the_chunk_the_policy_computes(server, client):
@@ -63,7 +39,7 @@ def test_a_killed_server_is_known_down_without_a_request_and_a_request_fails_fas
     remote = client()
     remote.infer(_world())
     process.kill()
-    assert _wait_for(lambda: not remote.available(), timeout_s=3.0)  # liveliness, not a failed request
+    assert wait_for(lambda: not remote.available(), timeout_s=3.0)  # liveliness, not a failed request
     assert remote.changes == ["down"]
     started = time.perf_counter()
     with pytest.raises(ServerUnavailable):
@@ -116,9 +92,9 @@ def test_a_server_back_with_another_model_is_refused(server, client):
     process = server("--model-hash", "model-a")
     remote = client()
     process.kill()
-    assert _wait_for(lambda: not remote.available(), timeout_s=3.0)
+    assert wait_for(lambda: not remote.available(), timeout_s=3.0)
     server("--model-hash", "model-b")
-    assert _wait_for(lambda: remote.changes[-1:] == ["refused"], timeout_s=20.0)
+    assert wait_for(lambda: remote.changes[-1:] == ["refused"], timeout_s=20.0)
     assert not remote.available()
     with pytest.raises(ServerUnavailable):
         remote.infer(_world())
@@ -128,9 +104,9 @@ def test_a_server_back_with_the_same_model_is_taken_back(server, client):
     process = server("--model-hash", "model-a")
     remote = client()
     process.kill()
-    assert _wait_for(lambda: not remote.available(), timeout_s=3.0)
+    assert wait_for(lambda: not remote.available(), timeout_s=3.0)
     server("--model-hash", "model-a")
-    assert _wait_for(remote.available, timeout_s=20.0)
+    assert wait_for(remote.available, timeout_s=20.0)
     assert remote.changes == ["down", "up"]
     assert remote.infer(_world()).shape == (10, 2)
 
@@ -139,9 +115,9 @@ def test_accepting_a_new_model_takes_it(server, client):
     process = server("--model-hash", "model-a")
     remote = client(on_model_change="accept")
     process.kill()
-    assert _wait_for(lambda: not remote.available(), timeout_s=3.0)
+    assert wait_for(lambda: not remote.available(), timeout_s=3.0)
     server("--model-hash", "model-b", "--offset", "2.0")
-    assert _wait_for(remote.available, timeout_s=20.0)
+    assert wait_for(remote.available, timeout_s=20.0)
     assert remote.meta is not None
     assert remote.meta.model_hash == "model-b"
     assert remote.infer(_world())[0, 0] == pytest.approx(0.1 + 2.0)

@@ -14,13 +14,12 @@ from PIL import Image
 from openral_core import JointState, WorldState
 from openral_observability import semconv
 from openral_remote.admission import ServeLimits
-from openral_remote.client import RemotePolicyClient
 from openral_remote.codec import encode
 from openral_remote.config import ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.server import PolicyServer
 from openral_remote.session import PeerError, open_session, request
-from openral_remote.testing import ChunkSkill, chunk_meta
+from openral_remote.testing import ChunkSkill, chunk_meta, wait_for
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -68,24 +67,9 @@ def serve(keys: PolicyKeys, endpoint: str) -> Iterator[Callable[..., tuple[Polic
         server.close()
 
 
-@pytest.fixture
-def robot(keys: PolicyKeys, client_zenoh: ZenohConfig) -> Iterator[Callable[..., RemotePolicyClient]]:
-    made: list[RemotePolicyClient] = []
-
-    def connect(deadline_ms: float = 2000.0) -> RemotePolicyClient:
-        remote = RemotePolicyClient(keys, client_zenoh, deadline_ms=deadline_ms)
-        remote.connect(timeout_s=20.0)
-        made.append(remote)
-        return remote
-
-    yield connect
-    for remote in made:
-        remote.close()
-
-
-def test_a_reset_from_one_robot_leaves_another_robots_episode_alone(serve, robot):
+def test_a_reset_from_one_robot_leaves_another_robots_episode_alone(serve, client):
     _server, built = serve(latch=True)  # each episode plans from where it started
-    a, b = robot(), robot()
+    a, b = client(), client()
     a.reset(seed=1)
     assert a.infer(_world((0.0, 0.0)))[0, 0] == pytest.approx(0.5)  # a's episode starts at 0.0
     b.reset(seed=2)
@@ -98,9 +82,9 @@ def test_a_reset_from_one_robot_leaves_another_robots_episode_alone(serve, robot
     assert seeds == [[1], [2, 3]]  # each robot's resets reached its own instance only
 
 
-def test_a_policy_without_episode_state_is_loaded_once_for_every_robot(serve, robot):
+def test_a_policy_without_episode_state_is_loaded_once_for_every_robot(serve, client):
     server, built = serve()
-    robots = [robot() for _ in range(3)]
+    robots = [client() for _ in range(3)]
     for i, remote in enumerate(robots):
         remote.reset(seed=i)
         assert remote.infer(_world((float(i), 0.0)))[0, 0] == pytest.approx(i + 0.5)
@@ -139,9 +123,9 @@ def _rss_mib() -> float:
     raise AssertionError("no VmRSS")
 
 
-def test_a_huge_image_is_refused_unread_and_leaves_no_memory_behind(serve, robot, keys, client_zenoh):
+def test_a_huge_image_is_refused_unread_and_leaves_no_memory_behind(serve, client, keys, client_zenoh):
     server, built = serve(observation=())  # reads everything, images included
-    remote = robot()
+    remote = client()
     remote.infer(_world((0.0, 0.0)))
     message = _hostile_request(6000, 6000)
     assert len(message) < 1 << 20  # a small request...
@@ -176,9 +160,9 @@ def test_an_image_of_a_camera_the_policy_does_not_read_is_refused(serve, keys, c
     assert server.stats.refused == 1
 
 
-def test_a_jpeg_whose_own_size_differs_from_its_description_is_refused(serve, robot, keys, client_zenoh):
+def test_a_jpeg_whose_own_size_differs_from_its_description_is_refused(serve, client, keys, client_zenoh):
     _server, built = serve(observation=())
-    robot()  # the server is up
+    client()  # the server is up
     fields = {
         "stamp_ns": 1,
         "image.front": np.frombuffer(_jpeg(4000, 3000), dtype=np.uint8),
@@ -193,10 +177,10 @@ def test_a_jpeg_whose_own_size_differs_from_its_description_is_refused(serve, ro
     assert built.skills[0].batch_sizes == []
 
 
-def test_a_flood_under_fresh_client_ids_does_not_starve_a_robot_under_way(serve, robot, keys, client_zenoh):
+def test_a_flood_under_fresh_client_ids_does_not_starve_a_robot_under_way(serve, client, keys, client_zenoh):
     limits = ServeLimits(max_pending=4, max_clients=4096)
     server, _built = serve(limits=limits, delay_s=0.02)
-    remote = robot(deadline_ms=3000)
+    remote = client(deadline_ms=3000)
     remote.infer(_world((0.0, 0.0)))  # the robot is under way
     stop = threading.Event()
     attacker = open_session(client_zenoh)
@@ -213,7 +197,7 @@ def test_a_flood_under_fresh_client_ids_does_not_starve_a_robot_under_way(serve,
     for thread in flooders:
         thread.start()
     try:
-        assert _wait_for(lambda: server.stats.refused > 20)  # the queue is full and newcomers are turned away
+        assert wait_for(lambda: server.stats.refused > 20)  # the queue is full and newcomers are turned away
         served = 0
         for i in range(15):
             chunk = remote.infer(_world((0.01 * i, 0.0)))  # every request answered, none refused or late
@@ -227,19 +211,10 @@ def test_a_flood_under_fresh_client_ids_does_not_starve_a_robot_under_way(serve,
     assert served == 15
 
 
-def _wait_for(condition: Callable[[], bool], timeout_s: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.005)
-    return condition()
-
-
-def test_concurrent_robots_are_batched_and_each_gets_its_own_chunk(serve, robot, telemetry):
+def test_concurrent_robots_are_batched_and_each_gets_its_own_chunk(serve, client, telemetry):
     limits = ServeLimits(max_batch=8, max_wait_ms=200.0)
     server, built = serve(limits=limits, batch=8, delay_s=0.05)
-    robots = [robot(deadline_ms=5000) for _ in range(4)]
+    robots = [client(deadline_ms=5000) for _ in range(4)]
     for remote in robots:
         remote.infer(_world((0.0, 0.0)))  # all four are active clients now
     results: dict[int, np.ndarray] = {}
@@ -262,10 +237,10 @@ def test_concurrent_robots_are_batched_and_each_gets_its_own_chunk(serve, robot,
     assert max(sizes) > 1
 
 
-def test_one_failing_request_in_a_batch_fails_alone(serve, robot, keys, client_zenoh):
+def test_one_failing_request_in_a_batch_fails_alone(serve, client, keys, client_zenoh):
     limits = ServeLimits(max_batch=8, max_wait_ms=300.0)
     _server, _built = serve(limits=limits, batch=8, delay_s=0.02)
-    honest = robot(deadline_ms=5000)
+    honest = client(deadline_ms=5000)
     honest.infer(_world((0.0, 0.0)))
     session = open_session(client_zenoh)
     try:
@@ -288,9 +263,9 @@ def test_one_failing_request_in_a_batch_fails_alone(serve, robot, keys, client_z
     assert "bad request" in str(outcome["bad"])
 
 
-def test_a_zenoh_peer_without_a_client_id_has_an_episode_of_its_own(serve, robot, keys, client_zenoh):
+def test_a_zenoh_peer_without_a_client_id_has_an_episode_of_its_own(serve, client, keys, client_zenoh):
     _server, _built = serve(latch=True)
-    remote = robot()
+    remote = client()
     remote.infer(_world((0.2, 0.0)))
     session = open_session(client_zenoh)
     try:

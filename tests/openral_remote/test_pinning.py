@@ -7,8 +7,6 @@ after the real server went away is refused; the real server, back under its stab
 from __future__ import annotations
 
 import re
-import time
-from collections.abc import Callable, Iterator
 
 import pytest
 
@@ -16,7 +14,7 @@ from openral_core import JointState, ROSConfigError, WorldState
 from openral_core.config import validate_model
 from openral_remote.client import RemotePolicyClient, ServerRefused, ServerUnavailable
 from openral_remote.config import ZENOH_ID, RemotePolicyParams, ZenohConfig, server_zenoh_id
-from openral_remote.keys import PolicyKeys
+from openral_remote.testing import wait_for
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -27,46 +25,22 @@ def _world() -> WorldState:
     return WorldState(stamp_ns=1, joint_state=JointState(names=["a0", "a1"], positions=[0.1, -0.2]))
 
 
-def _wait_for(condition: Callable[[], bool], timeout_s: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.005)
-    return condition()
-
-
-@pytest.fixture
-def client(keys: PolicyKeys, client_zenoh: ZenohConfig) -> Iterator[Callable[..., RemotePolicyClient]]:
-    made: list[RemotePolicyClient] = []
-
-    def connect(**kwargs: object) -> RemotePolicyClient:
-        remote = RemotePolicyClient(keys, client_zenoh, deadline_ms=1000, **kwargs)  # type: ignore[arg-type]
-        made.append(remote)
-        remote.connect(timeout_s=20.0)
-        return remote
-
-    yield connect
-    for remote in made:
-        remote.close()
-
-
 def test_an_impostor_with_the_public_meta_is_refused_and_the_real_server_is_taken_back(server, client, keys) -> None:
     real = server()
     remote = client()
     assert remote.server_id == server_zenoh_id(keys.prefix)  # the id 'openral serve' keeps across restarts
     remote.infer(_world())
     real.stop()
-    assert _wait_for(lambda: not remote.available(), timeout_s=5.0)
+    assert wait_for(lambda: not remote.available(), timeout_s=5.0)
     # Same key, same meta (the model hash is public), its own alive token and infer queryable: another id.
     impostor = server("--zenoh-id", IMPOSTOR_ID)
-    assert _wait_for(lambda: remote.changes[-1:] == ["refused"])
+    assert wait_for(lambda: remote.changes[-1:] == ["refused"])
     assert not remote.available()  # the executor's fallback keeps acting
     with pytest.raises(ServerUnavailable):
         remote.infer(_world())
     impostor.stop()
     server()  # the real server again, under its stable id
-    assert _wait_for(remote.available)
+    assert wait_for(remote.available)
     assert remote.changes == ["down", "refused", "up"]
     assert remote.infer(_world()).shape == (10, 2)
 
@@ -79,7 +53,7 @@ def test_a_reply_from_another_server_than_the_pinned_one_is_not_acted_on(server,
     with pytest.raises(ServerRefused, match=f"answered by Zenoh id {real_id}, not the pinned server {IMPOSTOR_ID}"):
         remote.infer(_world())
     assert not remote.available()
-    assert _wait_for(lambda: remote.changes == ["down", "refused"])  # its meta, read again, is a stranger's too
+    assert wait_for(lambda: remote.changes == ["down", "refused"])  # its meta, read again, is a stranger's too
     assert not remote.available()
 
 
@@ -101,9 +75,9 @@ def test_accepting_a_server_change_pins_the_new_server(server, client) -> None:
     first = server()
     remote = client(on_server_change="accept")
     first.stop()
-    assert _wait_for(lambda: not remote.available(), timeout_s=5.0)
+    assert wait_for(lambda: not remote.available(), timeout_s=5.0)
     server("--zenoh-id", IMPOSTOR_ID)
-    assert _wait_for(remote.available)
+    assert wait_for(remote.available)
     assert remote.server_id == IMPOSTOR_ID
     assert remote.changes == ["down", "up"]
     assert remote.infer(_world()).shape == (10, 2)
