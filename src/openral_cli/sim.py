@@ -369,7 +369,9 @@ def benchmark_run(
             "provenance": _provenance(hasher.hexdigest(), workers, ray_address),
         }
         if serve:
-            document["provenance"]["served"] = {"max_batch": serve_max_batch or workers, "gpus": serve_gpus}
+            # null: one per process of the Ray cluster
+            batch = serve_max_batch or (workers if ray_address is None else None)
+            document["provenance"]["served"] = {"max_batch": batch, "gpus": serve_gpus}
         if baseline_path is not None:
             document["provenance"]["baseline"] = str(baseline_path)
         if error is not None:
@@ -589,10 +591,13 @@ def _policy_host(
     scene: SimEnvironment, run: BenchmarkRun, *, evaluator: Any, max_batch: int | None, gpus: float
 ) -> _Host:
     """Serve ``run``'s policy for ``scene``: in this process, or as a Ray actor with ``gpus`` on the evaluator's Ray."""
-    workers = evaluator.workers
+    # On Ray the cluster's CPUs are the processes that ask: each is a client with a request in flight.
+    processes = evaluator.processes or max(1, int(evaluator.ray().cluster_resources().get("CPU", 1)))
     served = importlib.import_module("openral_sim.served")
     limits = importlib.import_module("openral_remote.admission").ServeLimits(
-        max_batch=max_batch or workers, max_clients=max(32, 2 * workers), max_pending=max(64, 4 * workers)
+        max_batch=min(max_batch or processes, 1024),
+        max_clients=max(32, 2 * processes),
+        max_pending=max(64, 4 * processes),
     )
     if evaluator.ray_address is None:
         return _Host(served.PolicyHost(scene, run.skill, dict(run.skill_params), limits=limits), on_ray=False)

@@ -54,6 +54,8 @@ ERROR_SUPERSEDED = "superseded"
 ERROR_SHUTTING_DOWN = "shutting down"
 ERROR_BUSY = "busy"
 ERROR_FULL = "full"
+MAX_CLIENT_ID = 64
+"""Characters of a client's id kept: the episode table is keyed by it, and a peer picks it."""
 ALIVE_CHECK_TIMEOUT_S = 1.0
 """How long the start-up check waits for a live server's token (peers answer at once when connected)."""
 
@@ -225,7 +227,7 @@ class PolicyServer:
 
     def _on_reset(self, query: Any) -> None:
         attachment = attachment_fields(query.attachment)
-        self._enqueue(Job(query, RESET, client=str(attachment.get("client", "")), payload=_payload(query)))
+        self._enqueue(Job(query, RESET, client=_client_id(attachment), payload=_payload(query)))
 
     def _on_infer(self, query: Any) -> None:
         attachment = attachment_fields(query.attachment)
@@ -236,9 +238,7 @@ class PolicyServer:
             self.stats.refused += 1
             _reply_error(query, f"refused: {exc}")
             return
-        self._enqueue(
-            Job(query, INFER, client=str(attachment.get("client", "")), attachment=attachment, payload=payload)
-        )
+        self._enqueue(Job(query, INFER, client=_client_id(attachment), attachment=attachment, payload=payload))
 
     def _enqueue(self, job: Job) -> None:
         """Queue ``job`` for its client's episode; answer at once what it supersedes or displaces, or it if refused."""
@@ -267,8 +267,9 @@ class PolicyServer:
     def _work(self) -> None:
         episodes = self._episodes
         assert episodes is not None
+        batch_limit = self._batch_limit()  # asked once: a model's batch dimension does not change
         while True:
-            jobs = self._queue.take(self._batch_limit(), self.limits.max_wait_ms / 1e3, episodes.active)
+            jobs = self._queue.take(batch_limit, self.limits.max_wait_ms / 1e3, episodes.active)
             if not jobs:
                 return
             if jobs[0].kind == RESET:
@@ -388,6 +389,11 @@ class PolicyServer:
     def _note_batch(self, size: int) -> None:
         self.stats.batches += 1
         self.stats.largest_batch = max(self.stats.largest_batch, size)
+
+
+def _client_id(attachment: dict[str, Any]) -> str:
+    """The client's id from its attachment, cut to ``MAX_CLIENT_ID`` characters (a peer chooses it freely)."""
+    return str(attachment.get("client", ""))[:MAX_CLIENT_ID]
 
 
 def _recover(skill: RSkillBase) -> None:
