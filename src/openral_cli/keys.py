@@ -2,7 +2,9 @@
 
 On a terminal, stdin is put in cbreak mode for the command (each key arrives at once, unechoed)
 and restored on exit; from a pipe the same characters are read as they come. ``n`` or → ends the
-episode early (or the reset), ``r`` or ← re-records it, ``q`` or Esc stops recording.
+episode early (or the reset), ``r`` or ← re-records it, ``q`` or Esc stops recording. A command may
+add its own keys: the takeover key (``t`` by default) passes control between the policy and a
+person, ``s`` saves a highlight.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import sys
 import termios
 import threading
 import tty
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from enum import StrEnum
 from types import TracebackType
 from typing import IO, Any, Self
@@ -24,6 +26,8 @@ class KeyCommand(StrEnum):
     NEXT = "next"
     RERECORD = "rerecord"
     STOP = "stop"
+    TAKEOVER = "takeover"
+    HIGHLIGHT = "highlight"
 
 
 _SEQUENCES: dict[bytes, KeyCommand] = {
@@ -36,14 +40,21 @@ _SEQUENCES: dict[bytes, KeyCommand] = {
 }
 
 
-def parse_keys(data: bytes) -> list[KeyCommand]:
-    """The commands in a chunk read from the terminal (arrow keys are escape sequences)."""
+def parse_keys(data: bytes, extra: Mapping[str, KeyCommand] | None = None) -> list[KeyCommand]:
+    """The commands in a chunk read from the terminal (arrow keys are escape sequences).
+
+    Args:
+        extra: A command's own keys (one character each) beside the recording keys.
+    """
+    sequences = dict(_SEQUENCES)
+    for key, command in (extra or {}).items():
+        sequences[key.encode()] = command
     commands = []
     i = 0
     while i < len(data):
-        for sequence in sorted(_SEQUENCES, key=len, reverse=True):
+        for sequence in sorted(sequences, key=len, reverse=True):
             if data.startswith(sequence, i):
-                commands.append(_SEQUENCES[sequence])
+                commands.append(sequences[sequence])
                 i += len(sequence)
                 break
         else:
@@ -57,10 +68,18 @@ class KeyReader:
     Args:
         on_command: Called on the reader thread with each command.
         stream: Where keys come from (stdin by default).
+        extra: The command's own keys (one character each) beside the recording keys.
     """
 
-    def __init__(self, on_command: Callable[[KeyCommand], None], stream: IO[Any] | None = None) -> None:
+    def __init__(
+        self,
+        on_command: Callable[[KeyCommand], None],
+        stream: IO[Any] | None = None,
+        *,
+        extra: Mapping[str, KeyCommand] | None = None,
+    ) -> None:
         self._on_command = on_command
+        self._extra = dict(extra or {})
         self._stream = stream if stream is not None else sys.stdin
         self._saved: list[Any] | None = None
         self._stop = threading.Event()
@@ -99,5 +118,5 @@ class KeyReader:
                 return
             if not data:
                 return  # end of input: no more keys
-            for command in parse_keys(data):
+            for command in parse_keys(data, self._extra):
                 self._on_command(command)

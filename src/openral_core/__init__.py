@@ -13,6 +13,8 @@ from openral_core.environment import (
     SensorReaderBackend,
     SensorReaderConfig,
     SyncConfig,
+    TakeoverConfig,
+    TakeoverTrigger,
     TaskSpec,
     VLASpec,
 )
@@ -116,6 +118,8 @@ __all__ = [
     "StarvationFallback",
     "StopReason",
     "SyncConfig",
+    "TakeoverConfig",
+    "TakeoverTrigger",
     "TaskSpec",
     "TickResult",
     "VLASpec",

@@ -253,6 +253,52 @@ class FaultPolicy(_Block):
     max_consecutive_failures: int = Field(default=5, ge=1)
 
 
+class TakeoverTrigger(StrEnum):
+    """How a person passes control between the policy and the takeover skill."""
+
+    KEY = "key"
+    """A key in the terminal that runs the command."""
+    CONSOLE = "console"
+    """The web console's takeover button."""
+
+
+RESERVED_KEYS = frozenset("nrqs")
+"""Keys the commands already use (next, re-record, quit, save a highlight): a takeover key may not be one."""
+
+
+class TakeoverConfig(_Block):
+    """A skill a person drives (a leader arm) that can take control from the policy mid-run, and give it back.
+
+    While the person drives, their skill's actions pass the same safety envelope; switching either
+    way never jumps the robot (the first commands move at most one envelope step per tick towards
+    the new skill's target). Recorded rows say which ticks were the person's.
+    """
+
+    skill: str = Field(pattern=_ID_PATTERN, description="The skill the person drives, e.g. leader_arm.")
+    params: dict[str, Any] = Field(default_factory=dict, description="The takeover skill's parameters.")
+    via: list[TakeoverTrigger] = Field(
+        default_factory=lambda: [TakeoverTrigger.KEY, TakeoverTrigger.CONSOLE],
+        min_length=1,
+        description="How control passes: the terminal key, the console's button, or both.",
+    )
+    key: str = Field(default="t", min_length=1, max_length=1, description="The terminal key that toggles control.")
+    policy_labels: bool = Field(
+        default=True,
+        description="The policy keeps inferring while the person drives; its proposed action is recorded beside "
+        "theirs (DAgger labels).",
+    )
+
+    @field_validator("key")
+    @classmethod
+    def _free_key(cls, key: str) -> str:
+        if key in RESERVED_KEYS or not key.isprintable() or key.isspace():
+            raise ValueError(
+                f"takeover.key {key!r} is taken or unprintable: n, r, q and s are the recording keys; "
+                "pick another letter"
+            )
+        return key
+
+
 class RobotEnvironment(_Block):
     """A deployment: robot, sensors, skill, task, rate and policies. Loaded from YAML."""
 
@@ -271,6 +317,8 @@ class RobotEnvironment(_Block):
     realtime: RealtimeConfig = Field(default_factory=RealtimeConfig)
     faults: FaultPolicy = Field(default_factory=FaultPolicy)
     observers: list[ObserverConfig] = Field(default_factory=list)
+    takeover: TakeoverConfig | None = None
+    """A skill a person can take control with mid-run (a leader arm); none by default."""
 
     @model_validator(mode="before")
     @classmethod

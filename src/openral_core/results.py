@@ -88,6 +88,12 @@ class TickResult(BaseModel):
             the safety client clamped.
         trace_context: The tick span's W3C ``traceparent``, ``None`` when the tick was not traced.
         step_idx: The tick's step within the open episode, from 0.
+        intervention: With a takeover skill configured: a person drove this tick (``None`` without one).
+        active_skill: With a takeover skill configured: the skill whose action this tick was.
+        policy_action: With a takeover skill configured: row 0 of what the policy proposed this tick,
+            also while the person drove (DAgger labels); ``None`` when it proposed nothing.
+        handover_ramp: With a takeover skill configured: the command was limited to one envelope
+            step towards the active skill's target, just after control passed (bumpless transfer).
     """
 
     model_config = ConfigDict(extra="forbid", ser_json_inf_nan="constants")
@@ -114,6 +120,10 @@ class TickResult(BaseModel):
     reward: float | None = None
     terminated: bool | None = None
     truncated: bool | None = None
+    intervention: bool | None = None
+    active_skill: str | None = None
+    policy_action: list[float] | None = None
+    handover_ramp: bool | None = None
 
     @classmethod
     def trusted(cls, values: dict[str, Any]) -> TickResult:

@@ -32,6 +32,10 @@ LATENESS_MS: Final = "openral.lateness_ms"
 ACTION_APPLIED: Final = "openral.action_applied"
 WITHHELD_REASON: Final = "openral.withheld_reason"
 REQUESTED_ACTION: Final = "openral.requested_action"
+INTERVENTION: Final = "openral.intervention"
+ACTIVE_SKILL: Final = "openral.active_skill"
+POLICY_ACTION: Final = "openral.policy_action"
+HANDOVER_RAMP: Final = "openral.handover_ramp"
 TRACE_ID: Final = "openral.trace_id"
 SPAN_ID: Final = "openral.span_id"
 ACTIONS: Final = "actions"
@@ -56,6 +60,16 @@ TICK_COLUMNS: Final = (
 )
 """The ``openral.*`` columns that mirror ``TickResult`` fields, in column order; the trace and span id
 (:data:`TRACE_ID`, :data:`SPAN_ID`) follow them, taken from its ``trace_context``."""
+
+TAKEOVER_COLUMNS: Final = (
+    TickColumn("intervention", INTERVENTION, "bool"),
+    TickColumn("active_skill", ACTIVE_SKILL, "string"),
+    TickColumn("policy_action", POLICY_ACTION, ACTIONS),
+    TickColumn("handover_ramp", HANDOVER_RAMP, "bool"),
+)
+"""The columns of a deployment with a takeover skill, after :data:`TICK_COLUMNS`: which ticks a person drove,
+whose action each row is, what the policy proposed (DAgger labels: ``NaN`` where it proposed nothing), and
+which commands were limited to one envelope step just after control passed."""
 
 _SCALARS: Final = {"int64": pa.int64(), "float32": pa.float32(), "bool": pa.bool_(), "string": pa.string()}
 _ABSENT: Final[dict[str, Any]] = {"int64": -1, "float32": float("nan"), "bool": False, "string": ""}
@@ -92,6 +106,7 @@ def features(
     vcodec: str,
     action_names: Sequence[str] | None = None,
     environment_state_names: Sequence[str] = (),
+    takeover: bool = False,
 ) -> dict[str, dict[str, Any]]:
     """The ``features`` block of ``meta/info.json``, in column order, the five defaults last.
 
@@ -100,6 +115,7 @@ def features(
         action_names: Names of ``action`` (the joints by default: a robot commanded in joint space).
         environment_state_names: Names of ``observation.environment_state`` (a simulator's object
             state), recorded only when given.
+        takeover: Add :data:`TAKEOVER_COLUMNS` (a deployment with a takeover skill).
     """
     joints = list(joint_names)
     actions = joints if action_names is None else list(action_names)
@@ -126,7 +142,7 @@ def features(
                 "has_audio": False,
             },
         }
-    for tick_column in TICK_COLUMNS:
+    for tick_column in (*TICK_COLUMNS, *TAKEOVER_COLUMNS) if takeover else TICK_COLUMNS:
         if tick_column.dtype == ACTIONS:
             out[tick_column.column] = {"dtype": "float32", "shape": [len(actions)], "names": actions}
         else:

@@ -61,6 +61,7 @@ class LeRobotDatasetSink:
             non-empty dataset is refused.
         field: The option or parameter that named ``root``, for errors.
         defer_open: Open the folder at :meth:`open` rather than here (building then touches no file).
+        takeover: Record the takeover columns (:data:`~openral_dataset.schema.TAKEOVER_COLUMNS`).
 
     Raises:
         ROSConfigError: A bad rate, codec or camera name; and, unless ``defer_open``, what
@@ -82,6 +83,7 @@ class LeRobotDatasetSink:
         resume: bool = False,
         field: str = "--dataset-out",
         defer_open: bool = False,
+        takeover: bool = False,
     ) -> None:
         if fps < 1:
             raise ROSConfigError(f"must be a whole number of frames per second >= 1, got {fps}", field="fps")
@@ -99,6 +101,7 @@ class LeRobotDatasetSink:
                     f"camera {cam.sensor_id!r} cannot name a video folder: {why}", field="sensors[].sensor_id"
                 )
         self.vcodec = vcodec
+        self.takeover = takeover
         self.overflow = OverflowPolicy(overflow)
         self.features = self._features()
         self._arrow = schema.arrow_schema(self.features)
@@ -124,6 +127,7 @@ class LeRobotDatasetSink:
             vcodec=self.vcodec,
             action_names=self.action_names,
             environment_state_names=self.environment_state_names,
+            takeover=self.takeover,
         )
 
     # -- opening ---------------------------------------------------------------------------

@@ -59,6 +59,9 @@ ATTR_EPISODE_IDX: Final = "skill.episode_idx"
 ATTR_REWARD: Final = "skill.reward"
 ATTR_TERMINATED: Final = "skill.terminated"
 ATTR_TRUNCATED: Final = "skill.truncated"
+ATTR_TAKEOVER_INTERVENTION: Final = "openral.takeover.intervention"
+ATTR_TAKEOVER_ACTIVE_SKILL: Final = "openral.takeover.active_skill"
+ATTR_TAKEOVER_RAMP: Final = "openral.takeover.ramp"
 
 TICK_ATTRIBUTES: Final[Mapping[str, str]] = MappingProxyType(
     {
@@ -78,6 +81,9 @@ TICK_ATTRIBUTES: Final[Mapping[str, str]] = MappingProxyType(
         "reward": ATTR_REWARD,
         "terminated": ATTR_TERMINATED,
         "truncated": ATTR_TRUNCATED,
+        "intervention": ATTR_TAKEOVER_INTERVENTION,
+        "active_skill": ATTR_TAKEOVER_ACTIVE_SKILL,
+        "handover_ramp": ATTR_TAKEOVER_RAMP,
     }
 )
 """``TickResult`` field → its ``rskill.tick`` span attribute: the one place a tick field's telemetry name is given.
@@ -120,6 +126,8 @@ ATTR_EXCEPTION_TYPE: Final = "exception.type"
 
 # Events (on the span of the phase where they happen; the tick span for deadline and drop)
 EVENT_DEADLINE_MISSED: Final = "openral.event.deadline_missed"
+EVENT_TAKEOVER: Final = "openral.event.takeover"
+"""Control passed between the policy and the takeover skill (attribute ``openral.takeover.active_skill``)."""
 EVENT_SENSOR_STALE: Final = "openral.event.sensor_stale"
 EVENT_STALENESS_LATCHED: Final = "openral.event.staleness_latched"
 EVENT_ERROR_LATCHED: Final = "openral.event.error_latched"
@@ -145,6 +153,8 @@ METRIC_MISSED_SLOTS: Final = "openral.tick.missed_slots"
 METRIC_SAFETY_VIOLATIONS: Final = "openral.safety.violations"
 METRIC_SENSORS_STALE_READS: Final = "openral.sensors.stale_reads"
 METRIC_ACTIONS_WITHHELD: Final = "openral.tick.actions_withheld"
+METRIC_TAKEOVER_SWITCHES: Final = "openral.takeover.switches"
+"""Times control passed between the policy and the takeover skill (counter, by the skill now driving)."""
 METRIC_RECORDING_FRAMES: Final = "openral.recording.frames"
 """Dataset rows written (counter)."""
 METRIC_RECORDING_REPEATED_FRAMES: Final = "openral.recording.repeated_frames"

@@ -28,9 +28,11 @@ from openral_observability.observer import TickObserver
 from openral_rskill.base import OfflineConfigCheck, RSkillBase
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.clock import Clock
+from openral_runner.envelope import EnvelopeSafetyClient
 from openral_runner.hardware import HardwareRunner
 from openral_runner.safety import SafetyClient
 from openral_runner.sensor_reader import SensorReader
+from openral_runner.takeover import Takeover
 from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
@@ -109,6 +111,7 @@ def build_runner(
         executor=env.executor,
         action_names=robot.joint_names,
         fallback_skill=_fallback_skill(env, robot),
+        takeover=_takeover(env, robot, safety),
     )
     runner.observers.extend(_build_observers(env, robot, base_dir))
     return runner, skill
@@ -137,7 +140,10 @@ def check_deployment(env: RobotEnvironment, *, base_dir: Path | None = None) -> 
     _safety_client(env, robot)
     for index, _ in enumerate(env.sensors):
         _build_reader(index, env, hal, robot, base_dir)
+    takeover = _takeover(env, robot, _safety_client(env, robot))
     _release(None, _fallback_skill(env, robot), _build_observers(env, robot, base_dir))
+    if takeover is not None:
+        takeover.skill.shutdown()
 
 
 def _check_cameras(skill: RSkillBase, env: RobotEnvironment) -> None:
@@ -205,6 +211,21 @@ def _fallback_skill(env: RobotEnvironment, robot: RobotManifest) -> RSkillBase |
         spec.params, robot=robot, rate_hz=env.rate_hz
     )
     return skill
+
+
+def _takeover(env: RobotEnvironment, robot: RobotManifest, safety: SafetyClient) -> Takeover | None:
+    """The takeover skill and its switch; a switch ramps at the envelope's step limit (the robot's, without one)."""
+    spec = env.takeover
+    if spec is None:
+        return None
+    skill: RSkillBase = SKILL_REGISTRY.resolve(spec.skill, field="takeover.skill").from_config(
+        spec.params, robot=robot, rate_hz=env.rate_hz
+    )
+    if isinstance(safety, EnvelopeSafetyClient):
+        max_step = safety.max_step
+    else:
+        max_step = tuple(joint.velocity_limit / env.rate_hz for joint in robot.joints)
+    return Takeover(skill, joint_names=robot.joint_names, max_step=max_step, policy_labels=spec.policy_labels)
 
 
 def _build_reader(

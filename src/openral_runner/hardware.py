@@ -321,6 +321,10 @@ class HardwareRunner(SkillRunnerBase):
         if withheld is None:
             action, withheld = self._skill_phase(world, tick_idx)
 
+        requested = action
+        if action is not None and self.takeover is not None:
+            action = self._handover(action, world)
+
         t3 = now()
         to_send: Action | None = None
         if action is not None:
@@ -334,6 +338,7 @@ class HardwareRunner(SkillRunnerBase):
                 try:
                     self.hal.send_action(to_send)
                     applied = True
+                    self._last_sent = to_send.targets[0]
                     if self._commit_sent is not None:
                         self._commit_sent(to_send)
                 except ROSError as exc:
@@ -357,8 +362,8 @@ class HardwareRunner(SkillRunnerBase):
         tick.hal_ms = (t5 - t4) * 1e3
         tick.action_applied = applied
         tick.withheld = withheld
-        if action is not None:
-            tick.requested_action = action.first
+        if requested is not None and action is not None:
+            tick.requested_action = requested.first
             if applied and to_send is not None:
                 tick.sent_action = to_send.first
 

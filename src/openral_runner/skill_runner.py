@@ -35,6 +35,7 @@ from openral_rskill.base import RSkillBase
 from openral_rskill.executor import ChunkedExecutor, Outcome
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.safety import NullSafetyClient, SafetyClient
+from openral_runner.takeover import Takeover
 
 _log = structlog.get_logger(__name__)
 
@@ -54,6 +55,7 @@ class SkillRunnerBase(InferenceRunnerBase):
             a chunk's rows must match.
         fallback_skill: Acts while the chunking skill is starved (``executor.fallback: skill``).
         virtual_delay: Simulation only: ticks from a chunk request to its use, per request.
+        takeover: A skill a person can take control with mid-run (:mod:`openral_runner.takeover`).
         **base_kwargs: ``InferenceRunnerBase`` options.
     """
 
@@ -68,6 +70,7 @@ class SkillRunnerBase(InferenceRunnerBase):
         action_names: list[str] | None = None,
         fallback_skill: RSkillBase | None = None,
         virtual_delay: Callable[[int], int] | None = None,
+        takeover: Takeover | None = None,
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("skill_id", skill.info.skill_id)
@@ -79,6 +82,9 @@ class SkillRunnerBase(InferenceRunnerBase):
         if recorder is not None:
             self.attach_recorder(recorder)
         self.fallback_skill = fallback_skill
+        self.takeover = takeover
+        self._last_sent: list[float] | None = None
+        """Row 0 of the last command the robot accepted: where a bumpless switch starts from."""
         self.executor: ChunkedExecutor | None = None
         if skill.info.chunk_size > 1:
             if action_names is None:
@@ -101,20 +107,25 @@ class SkillRunnerBase(InferenceRunnerBase):
         self.observers.insert(0, recorder)
 
     def activate(self) -> None:
-        """Start the fallback skill (a chunking skill's, if any), then the base."""
-        fallback = self.fallback_skill
-        if fallback is not None and fallback.state is RSkillState.UNCONFIGURED:
-            fallback.configure()
-            fallback.activate()
+        """Start the fallback skill (a chunking skill's, if any) and the takeover skill, then the base."""
+        for helper in self._helper_skills():
+            if helper.state is RSkillState.UNCONFIGURED:
+                helper.configure()
+                helper.activate()
         super().activate()
 
     def deactivate(self) -> None:
-        """Stop the base, the chunk executor's worker and the fallback skill. Idempotent."""
+        """Stop the base, the chunk executor's worker, the fallback and the takeover skill. Idempotent."""
         super().deactivate()
         self.close_executor()
-        fallback = self.fallback_skill
-        if fallback is not None and fallback.state is not RSkillState.UNCONFIGURED:
-            fallback.shutdown()
+        for helper in self._helper_skills():
+            if helper.state is not RSkillState.UNCONFIGURED:
+                helper.shutdown()
+
+    def _helper_skills(self) -> list[RSkillBase]:
+        """The skills besides the policy that this runner starts and stops itself."""
+        helpers = [self.fallback_skill, self.takeover.skill if self.takeover is not None else None]
+        return [skill for skill in helpers if skill is not None]
 
     # -- episode boundaries ----------------------------------------------------------------
 
@@ -155,13 +166,84 @@ class SkillRunnerBase(InferenceRunnerBase):
                 "unavailable_ticks": stats.unavailable_ticks,
                 "errors": stats.errors,
             }
+        if self.takeover is not None:
+            self.metadata["takeover"] = {
+                "skill": self.takeover.skill_id,
+                "switches": self.takeover.switches,
+                "human_ticks": self.takeover.human_ticks,
+            }
         return super()._build_run_result(n_ticks, stop_reason)
 
     def _skill_phase(self, world: WorldState, tick_idx: int) -> tuple[Action | None, WithheldReason | None]:
         """Ask the skill (or its executor) for an action; any failure withholds it (the skill is third-party code)."""
+        if self.takeover is not None:
+            return self._takeover_phase(self.takeover, world, tick_idx)
+        return self._policy_phase(world, tick_idx)
+
+    def _policy_phase(self, world: WorldState, tick_idx: int) -> tuple[Action | None, WithheldReason | None]:
         if self.executor is not None:
             return self._chunk_phase(self.executor, world, tick_idx)
         return self._step_phase(self.skill, world, tick_idx)
+
+    # -- takeover ----------------------------------------------------------------------------
+
+    def _takeover_phase(
+        self, takeover: Takeover, world: WorldState, tick_idx: int
+    ) -> tuple[Action | None, WithheldReason | None]:
+        """The action of whoever drives this tick; the policy's proposal is kept for the recording."""
+        tick = self._tick
+        if takeover.begin_tick():
+            self._on_switch(takeover, tick_idx)
+        human = takeover.human_in_control
+        tick.intervention = human
+        if not human:
+            tick.active_skill = self.skill.info.skill_id
+            action, withheld = self._policy_phase(world, tick_idx)
+            tick.policy_action = action.first if action is not None else None
+            return action, withheld
+        tick.active_skill = takeover.skill_id
+        if takeover.policy_labels:
+            tick.policy_action = self._policy_label(world, tick_idx)
+        return self._step_phase(takeover.skill, world, tick_idx)
+
+    def _on_switch(self, takeover: Takeover, tick_idx: int) -> None:
+        """Control passed this tick; back to the policy, it starts afresh from the measured state."""
+        to = takeover.skill_id if takeover.human_in_control else self.skill.info.skill_id
+        self._telemetry.span.add_event(semconv.EVENT_TAKEOVER, {semconv.ATTR_TAKEOVER_ACTIVE_SKILL: to})
+        metrics.add(semconv.METRIC_TAKEOVER_SWITCHES, 1, {**self._metric_attrs, semconv.ATTR_TAKEOVER_ACTIVE_SKILL: to})
+        _log.info("control passed", to=to, tick=tick_idx, human=takeover.human_in_control)
+        if not takeover.human_in_control:
+            # A new epoch: no row computed before or during the person's turn is replayed, and the
+            # policy's own queues start from what it observes now.
+            self._reset_skill()
+
+    def _policy_label(self, world: WorldState, tick_idx: int) -> list[float] | None:
+        """What the policy would command this tick while the person drives (nothing is sent, nothing stops)."""
+        if self.executor is not None:
+            try:
+                decision = self.executor.step(tick_idx, world, self._telemetry)
+            except Exception as exc:
+                _log.debug("policy label failed", error=str(exc), tick=tick_idx)
+                return None
+            return decision.action.first if decision.outcome is Outcome.ACTION and decision.action else None
+        try:
+            output = self.skill.step(world)
+        except Exception as exc:  # a label is a by-product: a failing or finished policy labels nothing
+            _log.debug("policy label failed", error=str(exc), tick=tick_idx)
+            return None
+        return output.first if action_problem(output) is None else None
+
+    def _handover(self, action: Action, world: WorldState) -> Action:
+        """``action`` limited to one envelope step from the last command while a switch ramps (bumpless)."""
+        takeover = self.takeover
+        if takeover is None:
+            return action
+        reference = self._last_sent
+        if reference is None and world.joint_state is not None:
+            reference = list(world.joint_state.positions)
+        limited, ramped = takeover.limit(action, reference)
+        self._tick.handover_ramp = ramped
+        return limited
 
     def _chunk_phase(
         self, executor: ChunkedExecutor, world: WorldState, tick_idx: int

@@ -50,6 +50,10 @@ class TickContext:
     reward: float | None = None
     terminated: bool | None = None
     truncated: bool | None = None
+    intervention: bool | None = None
+    active_skill: str | None = None
+    policy_action: list[float] | None = None
+    handover_ramp: bool | None = None
 
     def withhold(self, reason: WithheldReason) -> None:
         """Record why the action did not reach the robot (the first reason given stands)."""

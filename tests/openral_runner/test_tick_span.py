@@ -65,6 +65,10 @@ def _every_field_set() -> TickResult:
         reward=0.25,
         terminated=False,
         truncated=True,
+        intervention=True,
+        active_skill="leader_arm",
+        policy_action=[0.75],
+        handover_ramp=True,
     )
 
 
@@ -99,4 +103,7 @@ def test_the_attribute_names_are_the_published_ones() -> None:
         "reward": "skill.reward",
         "terminated": "skill.terminated",
         "truncated": "skill.truncated",
+        "intervention": "openral.takeover.intervention",
+        "active_skill": "openral.takeover.active_skill",
+        "handover_ramp": "openral.takeover.ramp",
     }

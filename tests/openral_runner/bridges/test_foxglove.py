@@ -442,6 +442,10 @@ def every_field_set() -> TickResult:
         reward=0.25,
         terminated=True,
         truncated=True,
+        intervention=True,
+        active_skill="leader_arm",
+        policy_action=[0.25, 0.5],
+        handover_ramp=True,
     )
     unset = [name for name, info in TickResult.model_fields.items() if getattr(tick, name) == info.get_default()]
     assert unset == [], f"the probe leaves {unset} at their defaults"
