@@ -13,6 +13,7 @@ import hashlib
 import importlib
 import json
 import os
+import platform
 import subprocess
 import sys
 import time
@@ -228,6 +229,13 @@ def benchmark() -> None:
 )
 @click.option("--out", type=click.Path(path_type=Path, dir_okay=False), default=None, help="Write the JSON here.")
 @click.option(
+    "--html",
+    "html_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Also write the report as one self-contained HTML page with plots (needs the 'report' extra).",
+)
+@click.option(
     "--videos",
     "video_dir",
     type=click.Path(path_type=Path, file_okay=False),
@@ -269,6 +277,7 @@ def benchmark_run(
     ray_address: str | None,
     min_success: float | None,
     out: Path | None,
+    html_path: Path | None,
     video_dir: Path | None,
     baseline_path: Path | None,
     serve: bool,
@@ -290,6 +299,10 @@ def benchmark_run(
     evaluation = importlib.import_module("openral_sim.evaluation")
     code = EXIT_OK
     with exit_codes(bool(ctx.obj["debug"])):
+        html_report: Any = None
+        if html_path is not None:  # a missing matplotlib or an unwritable path fails now, not after the run
+            html_report = importlib.import_module("openral_sim.html_report")
+            html_report.check_writable(html_path)
         suite = BenchmarkSuite.from_yaml(config_path)
         baseline = _load_baseline(baseline_path) if baseline_path is not None else None
         hasher = hashlib.sha256(config_path.read_bytes())
@@ -379,6 +392,8 @@ def benchmark_run(
         text = json.dumps(document, indent=2)
         if out is not None:
             out.write_text(text + "\n", encoding="utf-8")
+        if html_report is not None:
+            html_report.write(document, html_path)
         if as_json:
             click.echo(text)
         else:
@@ -544,6 +559,7 @@ def _provenance(config_hash: str, workers: int, ray_address: str | None) -> dict
     return {
         "packages": versions,
         "python": sys.version.split()[0],
+        "machine": {"host": platform.node(), "system": platform.platform(), "cpus": os.cpu_count()},
         "git_revision": _git_revision(),
         "config_sha256": config_hash,
         "workers": workers,

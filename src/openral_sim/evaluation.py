@@ -361,7 +361,11 @@ def throughput(
 
 
 def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = None) -> dict[str, Any]:
-    """LeRobot's aggregates (``pc_success``, ``avg_sum_reward``, ``avg_max_reward``) and the Wilson 95 % interval."""
+    """LeRobot's aggregates (``pc_success``, ``avg_sum_reward``, ``avg_max_reward``) and the Wilson 95 % interval.
+
+    With the ``batch``, also the tick and inference times' percentiles and histograms
+    (:func:`latency_histogram`), which is all a report keeps of the per-step samples.
+    """
     n = len(episodes)
     successes = sum(e.success for e in episodes)
     low, high = wilson_interval(successes, n)
@@ -384,12 +388,44 @@ def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = No
     return summary
 
 
-def _percentiles(values: Sequence[float]) -> dict[str, float | None]:
+LATENCY_BINS = 40
+"""Bins of a report's latency histogram: the shape of every step's time in a few hundred bytes per row."""
+
+
+def _percentiles(values: Sequence[float]) -> dict[str, Any]:
     if not values:
-        return {"p50": None, "p99": None, "max": None}
-    data = np.asarray(values)
+        return {"p50": None, "p99": None, "max": None, "histogram": None}
+    data = np.asarray(values, dtype=float)
     return {
         "p50": float(np.percentile(data, 50)),
         "p99": float(np.percentile(data, 99)),
         "max": float(data.max()),
+        "histogram": latency_histogram(data),
     }
+
+
+def latency_histogram(values: Sequence[float] | np.ndarray, bins: int = LATENCY_BINS) -> dict[str, Any] | None:
+    """How many of ``values`` (ms) fall in each of ``bins`` bins from their minimum to their maximum.
+
+    Latencies are heavy-tailed (a garbage collection, a slow render), so positive values get
+    log-spaced bins (``scale: log``): the body and the tail both stay visible in a fixed, small
+    number of bins. A run whose steps all took the same time gets one narrow bin around it.
+
+    Returns:
+        ``{"scale": "log" | "linear", "edges_ms": [...bins + 1], "counts": [...bins]}``, or
+        ``None`` for no values.
+    """
+    data = np.asarray(values, dtype=float)
+    if data.size == 0:
+        return None
+    low, high = float(data.min()), float(data.max())
+    scale = "log" if low > 0 else "linear"
+    if high <= low:
+        pad = abs(low) * 0.05 or 1e-3
+        edges = np.array([low - pad, high + pad])  # positive still when log: the pad is 5 % of a positive value
+    elif scale == "log":
+        edges = np.geomspace(low, high, bins + 1)
+    else:
+        edges = np.linspace(low, high, bins + 1)
+    counts, _ = np.histogram(data, bins=edges)
+    return {"scale": scale, "edges_ms": [float(e) for e in edges], "counts": [int(c) for c in counts]}
