@@ -173,11 +173,14 @@ class DeployProcess:
 
     Args:
         args: Arguments after ``openral``.
+        keys: Give it a pipe for standard input, for :meth:`press`.
         through_uv: Start it as ``uv run openral ...`` (uv forwards signals to its child), else
             ``python -m openral_cli ...``.
     """
 
-    def __init__(self, args: list[str], *, through_uv: bool = False, cwd: str | None = None) -> None:
+    def __init__(
+        self, args: list[str], *, through_uv: bool = False, cwd: str | None = None, keys: bool = False
+    ) -> None:
         import shutil  # noqa: PLC0415
         import subprocess  # noqa: PLC0415
         import sys  # noqa: PLC0415
@@ -192,7 +195,8 @@ class DeployProcess:
             command = [sys.executable, "-m", "openral_cli", *args]
         self.proc = subprocess.Popen(
             command,
-            stdin=subprocess.DEVNULL,  # no terminal: a recording's key reader sees end of input
+            # No terminal: a key reader sees end of input, or (``keys``) what :meth:`press` writes.
+            stdin=subprocess.PIPE if keys else subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -230,6 +234,12 @@ class DeployProcess:
                     pytest.fail(f"deploy did not print {text!r} within {timeout} s:\n{self.stderr}")
                 self._changed.wait(min(remaining, 0.2))
 
+    def press(self, keys: str) -> None:
+        """Type ``keys`` into the process's standard input (started with ``keys=True``)."""
+        assert self.proc.stdin is not None, "start it with keys=True"
+        self.proc.stdin.write(keys)
+        self.proc.stdin.flush()
+
     def signal_group(self, signum: int) -> None:
         """Send ``signum`` to the whole process group (uv and its child), as a terminal or systemd does."""
         import os  # noqa: PLC0415
@@ -247,7 +257,7 @@ class DeployProcess:
     def close(self) -> None:
         """Close the pipes once the process has exited."""
         self._reader.join(5)
-        for stream in (self.proc.stdout, self.proc.stderr):
+        for stream in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
             if stream is not None:
                 stream.close()
 

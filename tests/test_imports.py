@@ -27,6 +27,9 @@ HEAVY = [
     "ray",
     "metaworld",
     "gym_pusht",
+    "aiohttp",
+    "matplotlib",
+    "selenium",
 ]
 
 

@@ -21,6 +21,7 @@ ALLOWED: dict[str, set[str]] = {
     "openral_remote": {"openral_core", "openral_observability", "openral_rskill"},
     "openral_perception": {"openral_core", "openral_observability", "openral_rskill", "openral_remote"},
     "openral_dataset": {"openral_core", "openral_observability"},
+    "openral_console": {"openral_core", "openral_observability"},
     "openral_runner": {
         "openral_core",
         "openral_observability",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import math
@@ -13,7 +14,10 @@ from pathlib import Path
 import click
 import structlog
 
+from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, with_console
+from openral_cli.controls import run_controls
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, exit_codes
+from openral_cli.keys import KeyCommand, KeyReader
 from openral_cli.record import record
 from openral_cli.recording import (
     MCAP_OPTION,
@@ -68,6 +72,8 @@ class Recording:
     task: str
     resume: bool
     vcodec: str
+    episode_every_s: float | None = None
+    highlight_s: float | None = None
 
 
 class Seconds(click.ParamType):  # type: ignore[type-arg]
@@ -164,6 +170,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     help=f"Serve a live Foxglove WebSocket (joint states, cameras, tick timings, safety events); "
     f"default port {FOXGLOVE_DEFAULT_PORT}.",
 )
+@CONSOLE_OPTION
 @click.option(
     "--dataset-out",
     type=click.Path(path_type=Path, file_okay=False),
@@ -174,6 +181,19 @@ def cli(ctx: click.Context, debug: bool) -> None:
 @MCAP_OPTION
 @click.option("--resume", is_flag=True, help="Add the episode to the dataset already in --dataset-out.")
 @VCODEC_OPTION
+@click.option(
+    "--episode-every-s",
+    type=Seconds(),
+    default=None,
+    help="With --dataset-out: commit the run as episodes of this many seconds (a crash loses at most one).",
+)
+@click.option(
+    "--highlight-s",
+    type=Seconds(),
+    default=None,
+    help="With --dataset-out: keep the last S seconds in memory; the s key or the console's button saves them "
+    "as one episode (nothing else is written).",
+)
 @click.pass_context
 def deploy(
     ctx: click.Context,
@@ -186,11 +206,14 @@ def deploy(
     otlp_protocol: str | None,
     trace_sample_ratio: float | None,
     foxglove_port: int | None,
+    console: ConsoleAddress | None,
     dataset_out: Path | None,
     task: str,
     rosbag: Path | None,
     resume: bool,
     vcodec: str,
+    episode_every_s: float | None,
+    highlight_s: float | None,
 ) -> None:
     """Run a deployment until --max-ticks, --duration, Ctrl-C or a safety stop.
 
@@ -212,6 +235,10 @@ def deploy(
             trace_sample_ratio=trace_sample_ratio,
         ) as span:
             env = RobotEnvironment.from_yaml(config_path, field="--config")
+            if dataset_out is None and (episode_every_s is not None or highlight_s is not None):
+                raise ROSConfigError(
+                    "records into a dataset", field="--episode-every-s/--highlight-s", hint="add --dataset-out DIR"
+                )
             try:
                 result = _deploy(
                     env,
@@ -221,9 +248,12 @@ def deploy(
                     signals=signals,
                     quiet=as_json,
                     foxglove_port=foxglove_port,
+                    console=console,
                     recording=None
                     if dataset_out is None
-                    else Recording(dataset_out, task or env.task.instruction or "", resume, vcodec),
+                    else Recording(
+                        dataset_out, task or env.task.instruction or "", resume, vcodec, episode_every_s, highlight_s
+                    ),
                     rosbag=rosbag,
                     config_path=config_path,
                 )
@@ -248,23 +278,30 @@ def _deploy(
     signals: StopSignals,
     quiet: bool,
     foxglove_port: int | None = None,
+    console: ConsoleAddress | None = None,
     recording: Recording | None = None,
     rosbag: Path | None = None,
     config_path: Path | None = None,
 ) -> RunResult:
     """Build, start, run and close one deployment; a stop signal at any point unwinds what was started.
 
-    ``--dataset-out``, ``--mcap`` and ``--foxglove`` add the observer entries they stand for; the
+    ``--dataset-out``, ``--mcap``, ``--foxglove`` and ``--console`` add the observer entries they stand for; the
     runner builds and starts them as it does the file's own.
     """
     if recording is not None:  # first, as a file would list it: it hears each tick before the viewers
-        env = with_observers(
-            env, dataset_entry(recording.root, resume=recording.resume, vcodec=recording.vcodec), first=True
+        entry = dataset_entry(
+            recording.root,
+            resume=recording.resume,
+            vcodec=recording.vcodec,
+            episode_every_s=recording.episode_every_s,
+            highlight_s=recording.highlight_s,
         )
+        env = with_observers(env, entry, first=True)
     if rosbag is not None:
         env = with_observers(with_thumbnails(env, FOXGLOVE_IMAGE_HZ), rosbag_entry(rosbag, deployment=config_path))
     if foxglove_port is not None:
         env = with_observers(with_thumbnails(env, FOXGLOVE_IMAGE_HZ), foxglove_entry(foxglove_port))
+    env = with_console(env, console)
     recorder = None
     try:
         with running(env, base_dir, signals=signals) as runner:
@@ -273,10 +310,16 @@ def _deploy(
                 recorder.on_failure = runner.request_stop  # the dataset cannot be written: stop there
             if foxglove_port is not None and not quiet:
                 _print_foxglove(runner.observers)
+            controls = run_controls(env, runner, recorder)
+            controls.actions[KeyCommand.STOP] = runner.request_stop
+            # The console's stop is an orderly stop, as Ctrl-C; its takeover and highlight buttons
+            # do what the keys do.
+            attach_console(runner, stop=runner.request_stop, **controls.buttons)
             _log.info("running", deployment=env.name, rate_hz=env.rate_hz, skill=env.vla.id, robot=env.hal.robot_id)
             if recording is not None:
                 runner.episode_start(recording.task)
-            with LiveStatus(runner, sys.stderr, title=env.name):
+            keys = KeyReader(controls, extra=controls.keys) if controls.keys else contextlib.nullcontext()
+            with keys, LiveStatus(runner, sys.stderr, title=env.name):
                 result = runner.run(max_ticks, duration_s=duration)
             if recording is not None:
                 runner.episode_end(success=result.stop_reason in _SUCCESSFUL_STOPS)

@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING, Any
 import click
 import structlog
 
+from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, with_console
+from openral_cli.controls import RunControls, run_controls, takeover_keys
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.keys import KeyCommand, KeyReader
 from openral_cli.recording import (
@@ -53,8 +55,13 @@ class _Keys:
     """The runner while an episode records: a key ends its run."""
     pending: KeyCommand | None = None
     pressed: threading.Event = field(default_factory=threading.Event)
+    controls: RunControls = field(default_factory=RunControls)
+    """What a key does beside the recording keys (take over): it never ends the episode."""
 
     def __call__(self, command: KeyCommand) -> None:
+        if self.controls.offers(command):
+            self.controls(command)
+            return
         self.pending = command
         self.pressed.set()
         runner = self.recording
@@ -100,6 +107,7 @@ class _Totals:
     help="What a stop signal does to the episode under way.",
 )
 @MCAP_OPTION
+@CONSOLE_OPTION
 @click.option("--otlp-endpoint", metavar="URL", default=None, help="Export telemetry over OTLP to this collector.")
 @click.pass_context
 def record(
@@ -115,6 +123,7 @@ def record(
     vcodec: str,
     on_stop: str,
     rosbag: Path | None,
+    console: ConsoleAddress | None,
     otlp_endpoint: str | None,
 ) -> None:
     """Record episodes into a LeRobotDataset v3.0 (keys: n/→ next, r/← re-record, q/Esc stop)."""
@@ -127,13 +136,24 @@ def record(
             env = with_observers(env, dataset_entry(dataset_out, resume=resume, vcodec=vcodec), first=True)
             if rosbag is not None:
                 env = with_observers(with_thumbnails(env), rosbag_entry(rosbag, deployment=config_path))
+            env = with_console(env, console)
             keys = _Keys()
             totals = _Totals()
             recorder: RolloutRecorder | None = None
             try:
-                with KeyReader(keys), running(env, config_path.parent, signals=signals) as runner:
+                key_reader = KeyReader(keys, extra=takeover_keys(env))
+                with key_reader, running(env, config_path.parent, signals=signals) as runner:
                     recorder = recorder_of(runner.observers)
                     recorder.on_failure = runner.request_stop  # a write failure ends the episode under way
+                    keys.controls = run_controls(env, runner)
+                    # The console's buttons are the keys: the same path, the same effect.
+                    attach_console(
+                        runner,
+                        next=lambda: keys(KeyCommand.NEXT),
+                        rerecord=lambda: keys(KeyCommand.RERECORD),
+                        stop=lambda: keys(KeyCommand.STOP),
+                        **keys.controls.buttons,
+                    )
                     _record_episodes(
                         runner,
                         recorder,
@@ -174,7 +194,8 @@ def _record_episodes(
     take = 0
     while totals.committed < episodes and recorder.failure is None:
         task = tasks[totals.committed % len(tasks)]
-        keys.take()
+        if keys.take() is KeyCommand.STOP:  # pressed while the last episode was committed
+            return
         runner.episode_start(task)
         click.echo(f"episode {totals.committed + 1}/{episodes} (take {take + 1}): {task!r}", err=True)
         keys.recording = runner

@@ -39,9 +39,20 @@ VCODEC_OPTION = click.option(
 )
 
 
-def dataset_entry(root: Path, *, resume: bool, vcodec: str) -> ObserverConfig:
+def dataset_entry(
+    root: Path,
+    *,
+    resume: bool,
+    vcodec: str,
+    episode_every_s: float | None = None,
+    highlight_s: float | None = None,
+) -> ObserverConfig:
     """The ``lerobot_dataset`` observer entry ``--dataset-out`` stands for (the path taken from the working folder)."""
-    params = {"root": str(root.expanduser().absolute()), "resume": resume, "vcodec": vcodec}
+    params: dict[str, Any] = {"root": str(root.expanduser().absolute()), "resume": resume, "vcodec": vcodec}
+    if episode_every_s is not None:
+        params["episode_every_s"] = episode_every_s
+    if highlight_s is not None:
+        params["highlight_s"] = highlight_s
     return ObserverConfig.shorthand("lerobot_dataset", params, option="--dataset-out")
 
 

@@ -24,6 +24,7 @@ from typing import Any
 
 import click
 
+from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, console_factories
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.options import json_object
 from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
@@ -100,6 +101,7 @@ def sim() -> None:
     "--no-cameras", is_flag=True, help="Render none of the scene's cameras (state-only skills: tens of ms a step less)."
 )
 @VCODEC_OPTION
+@CONSOLE_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout, nothing else.")
 @click.option("--otlp-endpoint", default=None, help="Export telemetry to this OTLP endpoint.")
 @click.pass_context
@@ -117,6 +119,7 @@ def sim_run(
     resume: bool,
     no_cameras: bool,
     vcodec: str,
+    console: ConsoleAddress | None,
     as_json: bool,
     otlp_endpoint: str | None,
 ) -> None:
@@ -129,7 +132,7 @@ def sim_run(
         if no_cameras:
             scene = scene.model_copy(update={"cameras": []})
         params = json_object(skill_params, "--skill-params")
-        observers = []
+        observers: list[Callable[[Any], Any]] = []
         written: list[Any] = []
         if save_video is not None:
             make_writer = evaluation.video_writer(scene, save_video, videos, scene.name)
@@ -139,6 +142,7 @@ def sim_run(
                 return written[-1]
 
             observers.append(make_video)
+        observers.extend(console_factories(console))
         recorders: list[Any] = []
 
         def make_recorder(spec: Any) -> Any:
@@ -188,10 +192,11 @@ def sim_run(
 
 
 def _stop_on(runner: Any, signals: StopSignals, recorders: list[Any]) -> None:
-    """Stop signals and a recorder that can no longer write both end the run."""
+    """Stop signals, a recorder that can no longer write and the console's stop button all end the run."""
     signals.on_stop(runner.request_stop)
     for recorder in recorders:
         recorder.on_failure = runner.request_stop
+    attach_console(runner, stop=runner.request_stop)  # no-op without --console
 
 
 def _scene(scene: SimEnvironment, n_episodes: int | None, seed: int | None) -> SimEnvironment:
