@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from openral_core import StarvationFallback, TickResult
+from openral_core import TickResult
 
 
 def runner_status(runner: Any) -> dict[str, Any]:
@@ -76,14 +76,8 @@ def executor_status(executor: Any) -> dict[str, Any] | None:
 
 def _fallback_active(executor: Any) -> bool | None:
     """Whether the executor has starved past its allowance and hands the ticks to the fallback skill."""
-    public = getattr(executor, "fallback_active", None)
-    if isinstance(public, bool):
-        return public
-    starved = getattr(executor, "_starved_in_row", None)  # no public flag yet: the executor's own streak
-    config = getattr(executor, "config", None)
-    if not isinstance(starved, int) or config is None:
-        return None
-    return bool(starved > config.max_starved_ticks and config.fallback is StarvationFallback.SKILL)
+    active = getattr(executor, "fallback_active", None)
+    return active if isinstance(active, bool) else None
 
 
 def takeover_status(takeover: Any) -> dict[str, Any] | None:

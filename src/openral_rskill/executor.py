@@ -286,6 +286,11 @@ class ChunkedExecutor:
             return Decision(Outcome.NONE)
         return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
 
+    @property
+    def fallback_active(self) -> bool:
+        """Starved past the allowance with ``fallback: skill``: the fallback skill acts until a row arrives."""
+        return self._starved_in_row > self.config.max_starved_ticks and self.config.fallback is StarvationFallback.SKILL
+
     def reset(self, run: Callable[[], None] | None = None) -> None:
         """A new episode: drop every row and in-flight result (a new epoch) and reset the policy on the worker.
 

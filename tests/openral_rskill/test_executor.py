@@ -131,6 +131,7 @@ def test_starvation_holds_the_last_target_then_falls_back() -> None:
         outcomes = [ex.step(t, world(t)) for t in range(1, 8)]
         # Rows 1 and 2 (row 0's tick has passed), then the last target held twice, then the fallback.
         assert [d.outcome for d in outcomes] == [Outcome.ACTION] * 2 + [Outcome.HOLD] * 2 + [Outcome.FALLBACK] * 3
+        assert ex.fallback_active  # what a console shows
         assert outcomes[2].action is not None
         assert outcomes[2].action.first == [2.0, -2.0]
         assert ex.stats.starved_ticks == 5
@@ -347,6 +348,7 @@ def test_after_the_source_returns_the_fallback_acts_until_a_chunk_arrives() -> N
     # Asked again at tick 2, usable at tick 4: never the stale target of before the outage meanwhile.
     assert [ex.step(t, world(t)).outcome for t in (2, 3)] == [Outcome.FALLBACK, Outcome.FALLBACK]
     assert ex.step(4, world(4)).outcome is Outcome.ACTION
+    assert not ex.fallback_active  # a row arrived: the policy acts again
 
 
 def test_a_policy_that_times_out_is_counted_late_not_failed() -> None:
