@@ -68,7 +68,6 @@ from openral_observability.queued_observer import QueuedObserver
 
 _log = structlog.get_logger(__name__)
 
-_MIRRORED: Final = {tick_column.tick_field for tick_column in (*schema.TICK_COLUMNS, *schema.TAKEOVER_COLUMNS)}
 _ROOT_FIELD: Final = "observers[].params.root"
 MAX_PENDING_SAVES: Final = 4
 """Highlight saves waiting for the saving thread at most (each holds its rows until written)."""
@@ -176,6 +175,8 @@ class RolloutRecorder(QueuedObserver):
         self._ends_done = 0
         # Closing waits for the highlights asked for: each may take a few times its length to write.
         close_timeout_s = 30.0 + (MAX_PENDING_SAVES * 3 * highlight_s if highlight_s is not None else 0.0)
+        self._tick_columns = schema.tick_columns(takeover=sink.takeover)
+        self._mirrored = {tick_column.tick_field for tick_column in self._tick_columns}
         super().__init__(name="openral-recorder", max_queue=max_queue, close_timeout_s=close_timeout_s)
 
     @classmethod
@@ -437,11 +438,9 @@ class RolloutRecorder(QueuedObserver):
             self._held = list(tick.sent_action)
         action = self._held if self._held is not None else self._hold_default(state)
         trace_id, span_id = _ids(tick.trace_context)
-        mirrored = tick.model_dump(mode="json", include=_MIRRORED)
+        mirrored = tick.model_dump(mode="json", include=self._mirrored)
         row: dict[str, Any] = {schema.STATE: state, schema.ACTION: action}
-        for tick_column in (
-            (*schema.TICK_COLUMNS, *schema.TAKEOVER_COLUMNS) if self.sink.takeover else schema.TICK_COLUMNS
-        ):
+        for tick_column in self._tick_columns:
             row[tick_column.column] = mirrored[tick_column.tick_field]  # None: the column's absent value
         row[schema.TRACE_ID] = trace_id
         row[schema.SPAN_ID] = span_id

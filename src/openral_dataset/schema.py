@@ -71,6 +71,12 @@ TAKEOVER_COLUMNS: Final = (
 whose action each row is, what the policy proposed (DAgger labels: ``NaN`` where it proposed nothing), and
 which commands were limited to one envelope step just after control passed."""
 
+
+def tick_columns(*, takeover: bool) -> tuple[TickColumn, ...]:
+    """The columns a recording mirrors from ``TickResult``, in order: the takeover ones only with a takeover skill."""
+    return (*TICK_COLUMNS, *TAKEOVER_COLUMNS) if takeover else TICK_COLUMNS
+
+
 _SCALARS: Final = {"int64": pa.int64(), "float32": pa.float32(), "bool": pa.bool_(), "string": pa.string()}
 _ABSENT: Final[dict[str, Any]] = {"int64": -1, "float32": float("nan"), "bool": False, "string": ""}
 
@@ -142,7 +148,7 @@ def features(
                 "has_audio": False,
             },
         }
-    for tick_column in (*TICK_COLUMNS, *TAKEOVER_COLUMNS) if takeover else TICK_COLUMNS:
+    for tick_column in tick_columns(takeover=takeover):
         if tick_column.dtype == ACTIONS:
             out[tick_column.column] = {"dtype": "float32", "shape": [len(actions)], "names": actions}
         else:
