@@ -1,10 +1,21 @@
-"""The specification's module paths still name perception's parts, as plain re-exports."""
+"""The specification's module paths still name perception's parts, and its detectors keep its contract.
+
+The detectors at ``openral_runner.backends.gstreamer.perception_tee`` are called as the
+specification says: ``MotionDetector(*, threshold=0.02, downsample=1)`` (BT.601 luma, mean
+absolute change), ``SceneChangeDetector(*, threshold=0.5)`` (32-bin grey histograms,
+``chisqr_alt`` distance), ``detect(frame_bgr, width, height, sensor_id)`` on an appsink's BGR
+buffer, ``summarise(metadata)`` one line for people.
+"""
 
 from __future__ import annotations
 
 import importlib
+import inspect
 
+import numpy as np
 import pytest
+
+from openral_core import ROSConfigError, SensorFrame
 
 LIGHT_PATHS = [
     ("openral_runner.perception", "openral_perception.observer", ["PerceptionObserver", "build_publisher"]),
@@ -14,7 +25,6 @@ LIGHT_PATHS = [
         "openral_perception.publisher",
         ["PerceptionEventPublisher", "TokenBucket", "TOPIC_PREFIX", "EventSink"],
     ),
-    ("openral_runner.backends.gstreamer.perception_tee", "openral_perception.detectors.motion", ["MotionDetector"]),
     ("openral_runner.backends.gstreamer.detector_factory", "openral_perception.detectors.factory", ["model_path"]),
     ("openral_runner.backends.reward", "openral_perception.reward", ["Frame", "RollingFrameBuffer", "trend"]),
     ("openral_runner.backends.reward.frames", "openral_perception.reward.frames", ["RollingFrameBuffer"]),
@@ -40,3 +50,199 @@ def test_the_heavy_specification_paths_name_the_same_objects():
 
     assert objects.ObjectsDetector is ObjectsDetector
     assert client.RewardMonitor is RewardMonitor
+
+
+def test_the_specification_detectors_live_in_perception():
+    tee = importlib.import_module("openral_runner.backends.gstreamer.perception_tee")
+    buffers = importlib.import_module("openral_perception.detectors.buffers")
+    assert tee.EventDetector is buffers.BufferEventDetector
+    assert tee.MotionDetector is buffers.BufferMotionDetector
+    assert tee.SceneChangeDetector is buffers.BufferSceneChangeDetector
+    assert {"EventDetector", "MotionDetector", "SceneChangeDetector", "TOPIC_PREFIX"} <= set(tee.__all__)
+
+
+# The detectors as the specification describes them, through its path.
+
+H, W = 24, 32
+
+
+def tee():
+    return importlib.import_module("openral_runner.backends.gstreamer.perception_tee")
+
+
+def bgr(level: int | tuple[int, int, int], height: int = H, width: int = W) -> np.ndarray:
+    return np.broadcast_to(np.asarray(level, dtype=np.uint8), (height, width, 3)).copy()
+
+
+FORMS = {
+    "bytes": lambda a: a.tobytes(),
+    "bytearray": lambda a: bytearray(a.tobytes()),
+    "memoryview": lambda a: memoryview(a.tobytes()),
+    "flat ndarray": lambda a: a.reshape(-1),
+    "shaped ndarray": lambda a: a,
+}
+
+
+def test_the_event_detector_protocol_has_the_specification_signature():
+    detect = inspect.signature(tee().EventDetector.detect)
+    assert list(detect.parameters) == ["self", "frame_bgr", "width", "height", "sensor_id"]
+    assert list(inspect.signature(tee().EventDetector.summarise).parameters) == ["self", "metadata"]
+    assert tee().TOPIC_PREFIX == "/openral/perception"
+
+
+def test_the_constructors_take_the_specification_keywords_and_defaults():
+    motion = tee().MotionDetector()
+    assert (motion.kind, motion.threshold, motion.downsample) == ("motion", 0.02, 1)
+    motion = tee().MotionDetector(threshold=0.05, downsample=2)
+    assert (motion.threshold, motion.downsample) == (0.05, 2)
+    scene = tee().SceneChangeDetector()
+    assert (scene.kind, scene.threshold) == ("scene_change", 0.5)
+    assert tee().SceneChangeDetector(threshold=0.8).threshold == 0.8
+    with pytest.raises(TypeError):
+        tee().MotionDetector(0.05)  # keyword-only
+    with pytest.raises(TypeError):
+        tee().SceneChangeDetector(0.5)
+
+
+@pytest.mark.parametrize(("threshold", "downsample"), [(-0.1, 1), (1.5, 1), (float("nan"), 1), (0.02, 0), (0.02, 1.5)])
+def test_a_motion_detector_refuses_a_threshold_or_step_out_of_range(threshold, downsample):
+    with pytest.raises(ROSConfigError):
+        tee().MotionDetector(threshold=threshold, downsample=downsample)
+
+
+@pytest.mark.parametrize("threshold", [0, -1.0, float("nan")])
+def test_a_scene_change_detector_refuses_a_threshold_out_of_range(threshold):
+    with pytest.raises(ROSConfigError):
+        tee().SceneChangeDetector(threshold=threshold)
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_motion_fires_on_a_changed_frame_and_not_on_the_same_one(form):
+    to = FORMS[form]
+    motion = tee().MotionDetector()
+    assert motion.detect(to(bgr(100)), W, H, "cam") is None  # the first frame: nothing to compare with
+    assert motion.detect(to(bgr(100)), W, H, "cam") is None
+    moved = bgr(100)
+    moved[4:12, 8:24] = 250  # 1/6 of the view changes by 150: a mean change of 25 levels
+    found = motion.detect(to(moved), W, H, "cam")
+    assert found is not None
+    assert found.kind == "motion"
+    assert (found.box.x0, found.box.y0, found.box.x1, found.box.y1) == (8, 4, 24, 12)
+    summary = motion.summarise(found)
+    assert isinstance(summary, str)
+    assert summary
+    assert "\n" not in summary
+    assert motion.detect(to(moved.copy()), W, H, "cam") is None  # still again
+
+
+def test_detect_takes_the_specification_keywords():
+    motion = tee().MotionDetector()
+    assert motion.detect(frame_bgr=bgr(0).tobytes(), width=W, height=H, sensor_id="cam") is None
+    assert motion.detect(frame_bgr=bgr(255).tobytes(), width=W, height=H, sensor_id="cam") is not None
+
+
+@pytest.mark.parametrize(("threshold", "fires"), [(0.02, True), (0.035, True), (0.045, False), (0.1, False)])
+def test_the_motion_threshold_is_the_mean_absolute_grey_change_over_255(threshold, fires):
+    motion = tee().MotionDetector(threshold=threshold)
+    motion.detect(bgr(100).tobytes(), W, H, "cam")
+    found = motion.detect(bgr(110).tobytes(), W, H, "cam")  # every pixel 10 levels: 10/255 = 0.039
+    assert (found is not None) is fires
+
+
+def test_motion_weighs_the_channels_as_bt601_luma():
+    motion = tee().MotionDetector()
+    motion.detect(bgr(100).tobytes(), W, H, "cam")
+    # Blue 40 levels up is 40 * 0.114 = 4.6 grey levels (0.018, under 0.02); green's is 40 * 0.587 = 23.
+    assert motion.detect(bgr((140, 100, 100)).tobytes(), W, H, "cam") is None
+    assert motion.detect(bgr((140, 140, 100)).tobytes(), W, H, "cam") is not None
+
+
+def test_motion_downsample_compares_every_nth_pixel_on_both_axes():
+    base = bgr(100)
+    odd = base.copy()
+    odd[1::2, 1::2] = 255  # only odd rows and odd columns change
+    full, sparse = tee().MotionDetector(), tee().MotionDetector(downsample=2)
+    for detector in (full, sparse):
+        detector.detect(base.tobytes(), W, H, "cam")
+    assert full.detect(odd.tobytes(), W, H, "cam") is not None
+    assert sparse.detect(odd.tobytes(), W, H, "cam") is None  # never looked at
+    even = base.copy()
+    even[8:16, 10:20] = 255
+    found = sparse.detect(even.tobytes(), W, H, "cam")
+    assert found is not None  # in the frame's own coordinates, not the decimated grid's
+    assert (found.box.x0, found.box.y0, found.box.x1, found.box.y1) == (10, 8, 20, 16)
+
+
+def test_motion_compares_each_camera_with_its_own_previous_frame():
+    motion = tee().MotionDetector()
+    assert motion.detect(bgr(0).tobytes(), W, H, "left") is None
+    assert motion.detect(bgr(255).tobytes(), W, H, "right") is None  # right's first frame
+    assert motion.detect(bgr(0).tobytes(), W, H, "left") is None
+
+
+def test_a_gstreamer_buffer_with_padded_rows_is_read_as_the_same_frame():
+    width = 5  # 15 bytes a row, padded to 16
+    packed, changed = bgr(50, width=width), bgr(50, width=width)
+    changed[:, 2:4] = 200
+    pad = np.zeros((H, 1), dtype=np.uint8)
+    motion = tee().MotionDetector()
+    motion.detect(np.hstack([packed.reshape(H, -1), pad]).tobytes(), width, H, "cam")
+    found = motion.detect(np.hstack([changed.reshape(H, -1), pad]).tobytes(), width, H, "cam")
+    assert found is not None
+    assert (found.box.x0, found.box.x1) == (2, 4)
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [
+        bytes(W * H * 3 - 1),
+        bytes(W * H * 3 + 7),
+        np.zeros((H, W + 1, 3), dtype=np.uint8),
+        np.zeros((H, W, 3), dtype=np.float32),
+        np.zeros((H, W, 4), dtype=np.uint8),
+    ],
+    ids=["short", "long", "wrong shape", "not bytes", "four channels"],
+)
+@pytest.mark.parametrize("kind", ["MotionDetector", "SceneChangeDetector"])
+def test_a_buffer_of_the_wrong_size_is_a_clear_error(kind, frame):
+    detector = getattr(tee(), kind)()
+    with pytest.raises(ValueError, match=f"{W}x{H}|uint8"):
+        detector.detect(frame, W, H, "cam")
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_a_scene_change_fires_on_a_cut_and_not_on_lighting_drift(form):
+    to = FORMS[form]
+    scene = tee().SceneChangeDetector()
+    assert scene.detect(to(bgr(100)), W, H, "cam") is None  # the first frame
+    assert scene.detect(to(bgr(102)), W, H, "cam") is None  # the same histogram bin
+    found = scene.detect(to(bgr(230)), W, H, "cam")  # a cut: another scene
+    assert found is not None
+    assert found.kind == "scene_change"
+    summary = scene.summarise(found)
+    assert isinstance(summary, str)
+    assert summary
+    assert "\n" not in summary
+
+
+@pytest.mark.parametrize(("threshold", "fires"), [(0.5, True), (1.2, True), (1.45, False)])
+def test_the_scene_change_threshold_is_a_chisqr_alt_distance(threshold, fires):
+    # All black, then half black half white: p = (1, 0), q = (1/2, 1/2) over the end bins, so
+    # chisqr_alt = 2 * ((1/2)^2 / (3/2) + (1/2)^2 / (1/2)) = 4/3.
+    half = bgr(0)
+    half[H // 2 :] = 255
+    scene = tee().SceneChangeDetector(threshold=threshold)
+    scene.detect(bgr(0).tobytes(), W, H, "cam")
+    assert (scene.detect(half.tobytes(), W, H, "cam") is not None) is fires
+
+
+def test_the_specification_detectors_run_in_the_publisher_at_its_path():
+    publisher = tee().PerceptionEventPublisher([tee().MotionDetector(), tee().SceneChangeDetector()], rate_hz=1e6)
+
+    def frame(level: int, stamp_ns: int) -> SensorFrame:
+        return SensorFrame(sensor_id="cam", stamp_ns=stamp_ns, width=W, height=H, encoding="bgr8", data=bgr(level))
+
+    assert publisher.process(frame(0, 1)) == []
+    events = publisher.process(frame(255, 2))
+    assert sorted(event.kind for event in events) == ["motion", "scene_change"]
+    assert publisher.errors == 0

@@ -75,8 +75,13 @@ class MotionDetector:
         return MotionMetadata(changed_fraction=n_cells / cells.size, box=box)
 
     def summarise(self, metadata: MotionMetadata) -> str:
-        box = metadata.box
-        return (
-            f"motion over {metadata.changed_fraction:.0%} of the view, "
-            f"in ({box.x0:.0f}, {box.y0:.0f})–({box.x1:.0f}, {box.y1:.0f})"
-        )
+        return describe_motion(metadata)
+
+
+def describe_motion(metadata: MotionMetadata) -> str:
+    """One line for people about a motion event: how much of the view changed, and where."""
+    box = metadata.box
+    return (
+        f"motion over {metadata.changed_fraction:.0%} of the view, "
+        f"in ({box.x0:.0f}, {box.y0:.0f})–({box.x1:.0f}, {box.y1:.0f})"
+    )

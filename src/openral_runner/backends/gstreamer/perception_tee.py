@@ -1,14 +1,16 @@
 """Re-exports at the path the specification fixed: the perception event publisher and numpy detectors, no tee.
 
-The publisher lives in :mod:`openral_perception.publisher` and the detectors in
-:mod:`openral_perception.detectors`; none of them needs GStreamer. The camera's event leg that
-feeds a publisher (the tee branch ``enable_event_tee`` adds) is the reader's
-(:mod:`openral_runner.backends.gstreamer.reader`).
+The detectors here take a frame the way an appsink hands it over (``detect(frame_bgr, width,
+height, sensor_id)``); they live in :mod:`openral_perception.detectors.buffers`, over the same
+frame seam as the registered kinds. The publisher lives in :mod:`openral_perception.publisher`;
+none of them needs GStreamer. The camera's event leg that feeds a publisher (the tee branch
+``enable_event_tee`` adds) is the reader's (:mod:`openral_runner.backends.gstreamer.reader`).
 """
 
-from openral_perception.detectors.base import EventDetector
-from openral_perception.detectors.motion import MotionDetector
-from openral_perception.detectors.scene_change import SceneChangeDetector
+from openral_perception.detectors.buffers import BufferEventDetector as EventDetector
+from openral_perception.detectors.buffers import BufferMotionDetector as MotionDetector
+from openral_perception.detectors.buffers import BufferSceneChangeDetector as SceneChangeDetector
+from openral_perception.detectors.buffers import FrameBuffer
 from openral_perception.frame import DetectorFrame
 from openral_perception.publisher import (
     TOPIC_PREFIX,
@@ -23,6 +25,7 @@ __all__ = [
     "DetectorFrame",
     "EventDetector",
     "EventSink",
+    "FrameBuffer",
     "MotionDetector",
     "OpenableEventSink",
     "PerceptionEventPublisher",
