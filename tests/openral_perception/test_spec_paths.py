@@ -4,18 +4,23 @@ The detectors at ``openral_runner.backends.gstreamer.perception_tee`` are called
 specification says: ``MotionDetector(*, threshold=0.02, downsample=1)`` (BT.601 luma, mean
 absolute change), ``SceneChangeDetector(*, threshold=0.5)`` (32-bin grey histograms,
 ``chisqr_alt`` distance), ``detect(frame_bgr, width, height, sensor_id)`` on an appsink's BGR
-buffer, ``summarise(metadata)`` one line for people.
+buffer, ``summarise(metadata)`` one line for people. So is the object detector at
+``openral_runner.backends.gstreamer.objects_detector``: ``ObjectsDetector(onnx_path, *, labels,
+model_id, input_size=(640, 640), score_threshold=0.5, device="cpu")``, its ``summarise`` counting
+each label as ``"Nx label"``.
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from openral_core import ROSConfigError, SensorFrame
+from openral_core.perception import ObjectsMetadata, PixelBox
 
 LIGHT_PATHS = [
     ("openral_runner.perception", "openral_perception.observer", ["PerceptionObserver", "build_publisher"]),
@@ -50,6 +55,11 @@ def test_the_heavy_specification_paths_name_the_same_objects():
 
     assert objects.ObjectsDetector is ObjectsDetector
     assert client.RewardMonitor is RewardMonitor
+    from openral_perception.detectors import rtdetr  # noqa: PLC0415
+
+    assert objects.identify_rtdetr_outputs is rtdetr.identify_rtdetr_outputs
+    assert objects.postprocess_rtdetr is rtdetr.postprocess_rtdetr
+    assert {"ObjectsDetector", "make_objects_detector", "select_detector_tier", "DetectorTier"} <= set(objects.__all__)
 
 
 def test_the_specification_detectors_live_in_perception():
@@ -246,3 +256,94 @@ def test_the_specification_detectors_run_in_the_publisher_at_its_path():
     events = publisher.process(frame(255, 2))
     assert sorted(event.kind for event in events) == ["motion", "scene_change"]
     assert publisher.errors == 0
+
+
+# The object detector as the specification describes it, through its path, on the committed cube detector.
+
+CUBE_MODEL = str(Path(__file__).resolve().parents[2] / "models" / "cube_detector.onnx")
+CUBE_W, CUBE_H = 480, 240
+CUBE = PixelBox(x0=300, y0=100, x1=340, y1=150)
+
+
+def objects_detector():
+    pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
+    return importlib.import_module("openral_runner.backends.gstreamer.objects_detector")
+
+
+def cube_scene(cube: bool = True) -> np.ndarray:
+    """A dark blue floor (BGR), with the magenta cube the committed detector was made for."""
+    frame = bgr((90, 60, 40), CUBE_H, CUBE_W)
+    if cube:
+        frame[int(CUBE.y0) : int(CUBE.y1), int(CUBE.x0) : int(CUBE.x1)] = (200, 90, 210)
+    return frame
+
+
+def test_the_objects_detector_takes_the_specification_keywords_and_defaults():
+    cls = objects_detector().ObjectsDetector
+    parameters = inspect.signature(cls).parameters
+    assert list(parameters)[:6] == ["onnx_path", "labels", "model_id", "input_size", "score_threshold", "device"]
+    assert parameters["onnx_path"].kind is inspect.Parameter.POSITIONAL_OR_KEYWORD
+    assert all(parameters[name].kind is inspect.Parameter.KEYWORD_ONLY for name in list(parameters)[1:])
+    defaults = {name: parameters[name].default for name in ("input_size", "score_threshold", "device")}
+    assert defaults == {"input_size": (640, 640), "score_threshold": 0.5, "device": "cpu"}
+    detector = cls(CUBE_MODEL, labels=["cube"], model_id="cube")
+    assert (detector.kind, detector.labels, detector.model_id) == ("objects", ["cube"], "cube")
+    assert (detector.score_threshold, detector.device) == (0.5, "cpu")
+    assert cls(CUBE_MODEL, labels=["cube"], model_id="cube", score_threshold=0.8, device="cpu").score_threshold == 0.8
+    with pytest.raises(TypeError):
+        cls(CUBE_MODEL, ["cube"], "cube")  # keyword-only
+
+
+@pytest.mark.parametrize(("keyword", "value"), [("device", "cuda"), ("score_threshold", 1.5), ("labels", [])])
+def test_the_objects_detector_refuses_a_bad_argument_naming_it(keyword, value):
+    arguments = {"labels": ["cube"], "model_id": "cube", keyword: value}
+    with pytest.raises(ROSConfigError) as refused:
+        objects_detector().ObjectsDetector(CUBE_MODEL, **arguments)
+    assert refused.value.field == keyword
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_the_objects_detector_finds_the_cube_in_an_appsink_buffer(form):
+    to = FORMS[form]
+    detector = objects_detector().ObjectsDetector(CUBE_MODEL, labels=["cube"], model_id="cube")
+    found = detector.detect(to(cube_scene()), CUBE_W, CUBE_H, "front")
+    assert isinstance(found, ObjectsMetadata)
+    assert (found.kind, found.model_id) == ("objects", "cube")
+    assert [d.label for d in found.detections] == ["cube"]
+    assert found.detections[0].confidence >= 0.5
+    assert found.detections[0].box.iou(CUBE) > 0.8  # in the buffer's own pixels
+    assert detector.summarise(found) == "1x cube"
+    assert detector.detect(to(cube_scene(cube=False)), CUBE_W, CUBE_H, "front") is None
+
+
+def test_the_objects_detector_takes_the_detect_keywords():
+    detector = objects_detector().ObjectsDetector(CUBE_MODEL, labels=["cube"], model_id="cube")
+    found = detector.detect(frame_bgr=cube_scene().tobytes(), width=CUBE_W, height=CUBE_H, sensor_id="front")
+    assert found is not None
+    assert found.detections[0].label == "cube"
+
+
+def test_the_objects_summary_counts_each_label():
+    detector = objects_detector().ObjectsDetector(CUBE_MODEL, labels=["cube", "cup"], model_id="m")
+    box = PixelBox(x0=0, y0=0, x1=4, y1=4)
+    found = ObjectsMetadata(
+        model_id="m",
+        detections=[{"label": label, "confidence": 0.9, "box": box} for label in ("cube", "cup", "cube")],
+    )
+    assert detector.summarise(found) == "2x cube, 1x cup"
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [
+        bytes(CUBE_W * CUBE_H * 3 - 1),
+        bytes(CUBE_W * CUBE_H * 3 + 7),
+        np.zeros((CUBE_H, CUBE_W + 1, 3), dtype=np.uint8),
+        np.zeros((CUBE_H, CUBE_W, 3), dtype=np.float32),
+    ],
+    ids=["short", "long", "wrong shape", "not bytes"],
+)
+def test_an_objects_buffer_of_the_wrong_size_is_a_clear_error(frame):
+    detector = objects_detector().ObjectsDetector(CUBE_MODEL, labels=["cube"], model_id="cube")
+    with pytest.raises(ValueError, match=f"{CUBE_W}x{CUBE_H}|uint8"):
+        detector.detect(frame, CUBE_W, CUBE_H, "front")

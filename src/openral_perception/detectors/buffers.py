@@ -5,7 +5,8 @@ This is the detector form the specification fixes (``detect(frame_bgr, width, he
 buffer becomes a :class:`~openral_perception.frame.DetectorFrame` without a copy
 (:func:`buffer_frame`), so the grey image and the histograms are those of the frame seam. Each
 detector here also takes a ``DetectorFrame`` alone, so it runs in the event publisher like the
-registered kinds.
+registered kinds; the object detector (:mod:`~openral_perception.detectors.objects`) takes both
+forms through :func:`call_frame`.
 """
 
 from __future__ import annotations
@@ -81,10 +82,15 @@ def buffer_frame(frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str
     )
 
 
-def _view(
+def call_frame(
     frame_bgr: FrameBuffer | DetectorFrame, width: int | None, height: int | None, sensor_id: str | None
 ) -> DetectorFrame:
-    """The frame a ``detect`` call names: a view given as is, or a buffer with its size and camera."""
+    """The frame a ``detect`` call names: a view given as is, or a buffer with its size and camera.
+
+    Raises:
+        TypeError: A view with a size or camera beside it, or a buffer without them.
+        ValueError: A buffer whose size is not ``width`` × ``height`` (see :func:`buffer_frame`).
+    """
     if isinstance(frame_bgr, DetectorFrame):
         if width is not None or height is not None or sensor_id is not None:
             raise TypeError("detect(frame) takes a DetectorFrame alone; width, height and sensor_id are its own")
@@ -137,7 +143,7 @@ class BufferMotionDetector:
         Raises:
             ValueError: A buffer whose size is not ``width`` × ``height`` (see :func:`buffer_frame`).
         """
-        frame = _view(frame_bgr, width, height, sensor_id)
+        frame = call_frame(frame_bgr, width, height, sensor_id)
         step = self.downsample
         grey = self._grey(frame).astype(np.int16)  # a copy: the capture buffer may be reused
         previous = self._previous.get(frame.sensor_id)
@@ -209,7 +215,7 @@ class BufferSceneChangeDetector:
         Raises:
             ValueError: A buffer whose size is not ``width`` × ``height`` (see :func:`buffer_frame`).
         """
-        return self._histograms.detect(_view(frame_bgr, width, height, sensor_id))
+        return self._histograms.detect(call_frame(frame_bgr, width, height, sensor_id))
 
     def summarise(self, metadata: SceneChangeMetadata) -> str:
         return (

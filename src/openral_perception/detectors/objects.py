@@ -1,7 +1,10 @@
 """``objects``: object detection on the CPU with ONNX Runtime, for models with the RT-DETR / D-FINE signature.
 
 The model takes RGB (:mod:`~openral_perception.detectors.rtdetr` describes the signature and
-decodes it), so the detector reads the frame's RGB view: no channel flipping of its own. Tiers that
+decodes it), so the detector reads the frame's RGB view: no channel flipping of its own. It takes a
+frame as the publisher hands it over (a :class:`~openral_perception.frame.DetectorFrame`) or as an
+appsink does (``detect(frame_bgr, width, height, sensor_id)``, the specification's form, see
+:mod:`~openral_perception.detectors.buffers`). Tiers that
 need hardware or weights from a hub (``nvinfer``, ``nvmm_aggregator``, ``vlm_sidecar``,
 ``zeroshot_hf``) are refused with what they need (:mod:`~openral_perception.detectors.tier`).
 """
@@ -10,11 +13,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, overload
 
 from openral_core import ROSConfigError, ROSDependencyMissing
 from openral_core.config import validate_model
 from openral_core.perception import ObjectsMetadata
+from openral_perception.detectors.buffers import FrameBuffer, call_frame
 from openral_perception.detectors.factory import ObjectsParams, ObjectsSettings, objects_settings
 from openral_perception.detectors.rtdetr import identify_rtdetr_outputs, model_input, postprocess_rtdetr
 from openral_perception.detectors.tier import DetectorTier, require_runnable
@@ -35,12 +39,13 @@ class ObjectsDetector:
         model_id: Named in the events.
         input_size: The model's ``(height, width)`` (read from the model when it is fixed there).
         score_threshold: Detections below it are dropped.
+        device: Where the model runs: ``cpu``, the one device of this tier.
         resize: ``stretch`` the frame to the input, or ``letterbox`` it (aspect kept, padded grey).
         intra_op_threads: ONNX Runtime's threads (one: the robot's machine has other work).
 
     Raises:
-        ROSConfigError: No labels, a threshold outside [0, 1], no such file, or a file that is not
-            an RT-DETR detector (each naming its parameter).
+        ROSConfigError: No labels, a threshold outside [0, 1], a device other than the CPU, no such
+            file, or a file that is not an RT-DETR detector (each naming its parameter).
     """
 
     kind = "objects"
@@ -53,6 +58,7 @@ class ObjectsDetector:
         model_id: str,
         input_size: tuple[int, int] = (640, 640),
         score_threshold: float = 0.5,
+        device: str = "cpu",
         resize: Literal["stretch", "letterbox"] | str = "stretch",
         intra_op_threads: int = 1,
     ) -> None:
@@ -60,6 +66,10 @@ class ObjectsDetector:
             raise ROSConfigError("a detector needs its class names", field="labels")
         if not 0 <= score_threshold <= 1:
             raise ROSConfigError(f"{score_threshold} is outside [0, 1]", field="score_threshold")
+        if device != "cpu":
+            raise ROSConfigError(
+                f"device {device!r}: this tier runs ONNX Runtime on the CPU", field="device", hint="device='cpu'"
+            )
         if resize not in ("stretch", "letterbox"):
             raise ROSConfigError(f"unknown resize {resize!r}", field="resize", hint="stretch or letterbox")
         path = Path(onnx_path)
@@ -84,6 +94,7 @@ class ObjectsDetector:
         self.labels = list(labels)
         self.model_id = model_id
         self.score_threshold = score_threshold
+        self.device = device
         self.resize = resize
 
     @classmethod
@@ -103,8 +114,26 @@ class ObjectsDetector:
             resize=settings.resize,
         )
 
-    def detect(self, frame: DetectorFrame) -> ObjectsMetadata | None:
-        """The objects in ``frame``, boxes in its pixels."""
+    @overload
+    def detect(self, frame_bgr: DetectorFrame) -> ObjectsMetadata | None: ...
+
+    @overload
+    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> ObjectsMetadata | None: ...
+
+    def detect(
+        self,
+        frame_bgr: FrameBuffer | DetectorFrame,
+        width: int | None = None,
+        height: int | None = None,
+        sensor_id: str | None = None,
+    ) -> ObjectsMetadata | None:
+        """The objects in a frame, boxes in its pixels: a ``DetectorFrame`` alone, or a BGR buffer and its size.
+
+        Raises:
+            ValueError: A buffer whose size is not ``width`` × ``height`` (see
+                :func:`~openral_perception.detectors.buffers.buffer_frame`).
+        """
+        frame = call_frame(frame_bgr, width, height, sensor_id)
         tensor, content = model_input(frame.rgb, self.input_size, self.resize)
         logits, boxes = self._session.run([self._logits, self._boxes], {self._input: tensor})
         return postprocess_rtdetr(

@@ -1,4 +1,4 @@
-"""``DetectorTier``: where an object detector runs, and what the tiers this build cannot run need.
+"""``DetectorTier``: where an object detector runs, which one a host has, and what the tiers this build cannot run need.
 
 Light on purpose (no onnxruntime, no GStreamer): a manifest's tier is decided, and refused with
 what it needs, before any model is loaded.
@@ -46,3 +46,16 @@ def require_runnable(tier: DetectorTier, *, field: str = "manifest") -> None:
             field=field,
             hint="use a detector manifest with runtime: onnx (the cpu_onnx tier)",
         )
+
+
+def select_tier(*, nvinfer: bool, jetson: bool) -> DetectorTier:
+    """The fastest tier of a host that has DeepStream's ``nvinfer`` element, is a Jetson, or neither.
+
+    ``nvinfer`` wins over a Jetson's NVMM buffers (DeepStream runs on Jetsons too); without either
+    the host has the CPU. Asking the host is the caller's (its GStreamer, its platform).
+    """
+    if nvinfer:
+        return DetectorTier.NVINFER
+    if jetson:
+        return DetectorTier.NVMM_AGGREGATOR
+    return DetectorTier.CPU_ONNX

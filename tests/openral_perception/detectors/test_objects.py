@@ -55,6 +55,16 @@ def test_the_cube_detector_finds_a_drawn_cube_where_it_is(resize):
     assert detector.detect(_view(_cube_frame(480, 240, (0, 0, 0, 0)))) is None
 
 
+def test_a_call_gives_a_detector_frame_alone_or_a_buffer_with_its_size():
+    bgr = _cube_frame(480, 240, (300, 100, 340, 150))
+    detector = ObjectsDetector(str(CUBE_MODEL), labels=["cube"], model_id="cube")
+    with pytest.raises(TypeError, match="alone"):
+        detector.detect(_view(bgr), 480, 240, "front")
+    with pytest.raises(TypeError, match="width, height and sensor_id"):
+        detector.detect(bgr.tobytes())
+    assert detector.detect(bgr.tobytes(), 480, 240, "front") == detector.detect(_view(bgr))
+
+
 def test_the_model_sees_rgb_whatever_order_the_camera_delivers():
     bgr = _cube_frame(480, 240, (300, 100, 340, 150))
     detector = ObjectsDetector(str(CUBE_MODEL), labels=["cube"], model_id="cube")
