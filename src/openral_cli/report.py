@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from openral_core import RunResult
+from openral_runner.sensor_lag import lag_line
 
 
 def format_run_result(result: RunResult) -> str:
@@ -26,4 +27,8 @@ def format_run_result(result: RunResult) -> str:
     ]
     if result.trace_id:
         lines.append(f"  trace id         {result.trace_id}")
+    for sensor_id, figures in (result.metadata.get("sensors") or {}).items():
+        lag = lag_line(sensor_id, figures)
+        if lag is not None:
+            lines.append(f"  {lag}")
     return "\n".join(lines)

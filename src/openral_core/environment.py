@@ -243,6 +243,10 @@ class ObserverConfig(_Block):
         return self._option
 
 
+DEFAULT_SENSOR_READY_TIMEOUT_S = 10.0
+"""How long a run waits for its required sensors' first fresh frames unless ``faults:`` says otherwise."""
+
+
 class FaultPolicy(_Block):
     """How many consecutive failed ticks of each kind end the run safely.
 
@@ -251,6 +255,14 @@ class FaultPolicy(_Block):
     """
 
     max_consecutive_failures: int = Field(default=5, ge=1)
+    sensor_ready_timeout_s: float = Field(
+        default=DEFAULT_SENSOR_READY_TIMEOUT_S,
+        gt=0,
+        le=600,
+        allow_inf_nan=False,
+        description="how long a run waits, before its first tick, for every required sensor to deliver a frame "
+        "within its max_age_ms; a sensor that does not fails the start with its measured frame age",
+    )
 
 
 class TakeoverTrigger(StrEnum):

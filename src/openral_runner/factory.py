@@ -103,6 +103,7 @@ def build_runner(
         latency_budget_ms=env.latency_budget_ms,
         clock=clock,
         max_consecutive_failures=env.faults.max_consecutive_failures,
+        sensor_ready_timeout_s=env.faults.sensor_ready_timeout_s,
         runner_name=env.name,
         realtime=env.realtime,
         garbage_collection=env.realtime.garbage_collection,

@@ -9,7 +9,9 @@ holding its last accepted target.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import time
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from typing import Any
@@ -25,16 +27,20 @@ from openral_core import (
     ROSPerceptionStale,
     ROSRuntimeError,
     ROSSyncError,
+    RunResult,
     SensorFrame,
+    StopReason,
     SyncConfig,
     WithheldReason,
 )
+from openral_core.environment import DEFAULT_SENSOR_READY_TIMEOUT_S
 from openral_hal.protocol import HAL
 from openral_observability import metrics, semconv, tracer
 from openral_observability.observer import StartableObserver, ThumbnailSource, TickObserver
 from openral_rskill.base import RSkillBase
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
+from openral_runner.sensor_lag import ReportingReader, SensorReads
 from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
 from openral_runner.skill_runner import SkillRunnerBase, record_error
 from openral_runner.thumbnails import ThumbnailPublisher
@@ -68,6 +74,8 @@ class HardwareRunner(SkillRunnerBase):
             every thumbnail subscriber (the Foxglove view); 0 (or no camera) adds none.
         recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
             observer, hears every ``episode_start``/``episode_end`` and is closed with the runner.
+        sensor_ready_timeout_s: How long a run waits, before its first tick, for every required
+            sensor to deliver a frame within its ``max_age_ms``.
         **base_kwargs: ``InferenceRunnerBase`` options (rate, policy, clock, ...).
     """
 
@@ -84,6 +92,7 @@ class HardwareRunner(SkillRunnerBase):
         sync: SyncConfig | None = None,
         thumbnail_hz: float = 25.0,
         recorder: TickObserver | None = None,
+        sensor_ready_timeout_s: float = DEFAULT_SENSOR_READY_TIMEOUT_S,
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("runner_name", "hardware_runner")
@@ -93,6 +102,12 @@ class HardwareRunner(SkillRunnerBase):
         self.sensor_readers = list(sensor_readers)
         self.realtime = realtime
         self.sync = sync
+        if not (math.isfinite(sensor_ready_timeout_s) and sensor_ready_timeout_s > 0):
+            raise ROSConfigError(
+                f"must be a finite number > 0, got {sensor_ready_timeout_s}", field="faults.sensor_ready_timeout_s"
+            )
+        self.sensor_ready_timeout_s = sensor_ready_timeout_s
+        self._reads = {r.sensor_id: SensorReads() for r in self.sensor_readers}
         if not (math.isfinite(thumbnail_hz) and thumbnail_hz >= 0):
             raise ROSConfigError(f"must be a finite number >= 0, got {thumbnail_hz}", field="thumbnail_hz")
         self.thumbnails = ThumbnailPublisher(thumbnail_hz) if self.sensor_readers and thumbnail_hz > 0 else None
@@ -196,6 +211,69 @@ class HardwareRunner(SkillRunnerBase):
     # -- schedule phase --------------------------------------------------------------------
 
     def _schedule_origin(self) -> float:
+        """Wait until every required sensor is fresh, then start the schedule just after a frame of the first.
+
+        Raises:
+            ROSRuntimeError: A required sensor delivered no frame within its ``max_age_ms`` in
+                ``sensor_ready_timeout_s`` (the message names it, its newest frame's age and its capture
+                rate), or failed while starting (its own error).
+        """
+        self._reads = {r.sensor_id: SensorReads() for r in self.sensor_readers}
+        self._await_fresh_sensors()
+        return self._phase_origin()
+
+    def _await_fresh_sensors(self) -> None:
+        """Block (bounded) until each required sensor's newest frame is within its own age limit.
+
+        A camera that delivered its first frame when it opened may have delivered none since
+        (a software renderer on a busy machine, a camera still adjusting its exposure): starting
+        the loop then would withhold its first ticks for stale frames, and five of those stop it.
+        """
+        clock_ns = self._clock.now_ns
+        deadline_ns = clock_ns() + int(self.sensor_ready_timeout_s * 1e9)
+        # Bounded on the wall clock too, so a clock that does not advance by itself cannot hang it.
+        give_up = time.monotonic() + self.sensor_ready_timeout_s
+        for reader in self.sensor_readers:
+            if reader.sensor_id not in self._required_ids:
+                continue
+            synced = with_read_synced(reader, clock_ns=clock_ns)
+            while True:
+                try:
+                    reader.read_latest()
+                    break
+                except ROSPerceptionStale as exc:
+                    if clock_ns() >= deadline_ns or time.monotonic() >= give_up:
+                        raise self._not_ready(reader, exc) from exc
+                    newest = self._newest_stamp_ns(reader)
+                with contextlib.suppress(ROSPerceptionStale):  # at the deadline: judged by the next read
+                    synced.read_synced(deadline_ns, newer_than_ns=newest)
+
+    @staticmethod
+    def _newest_stamp_ns(reader: SensorReader) -> int:
+        try:
+            return reader.read_latest(math.inf).stamp_ns
+        except ROSPerceptionStale:
+            return 0
+
+    def _not_ready(self, reader: SensorReader, stale: ROSPerceptionStale) -> ROSRuntimeError:
+        """The start-up failure for ``reader``: its newest frame's age against its limit, and its capture figures."""
+        if stale.age_ms is None:
+            what = "delivered no frame"
+        else:
+            what = f"delivered no frame younger than {stale.max_age_ms:g} ms (its newest was {stale.age_ms:.0f} ms old)"
+        figures = reader.report() if isinstance(reader, ReportingReader) else {}
+        capture = ""
+        if figures.get("delivered_fps") is not None and figures.get("requested_fps") is not None:
+            capture = f"; it delivers {figures['delivered_fps']:.1f} of {figures['requested_fps']:g} fps"
+            if figures.get("render_ms"):
+                capture += f" at {figures['render_ms']:.0f} ms per render"
+        advice = figures.get("advice") or "lower its fps or image size, or check the device"
+        return ROSRuntimeError(
+            f"sensor '{reader.sensor_id}' {what} within {self.sensor_ready_timeout_s:g} s of start{capture}. "
+            f"To fix: {advice}; or raise its max_age_ms or faults.sensor_ready_timeout_s"
+        )
+
+    def _phase_origin(self) -> float:
         """Start the schedule just after a frame of the first required camera arrives.
 
         A camera and a tick at the same rate lock their phases; started at a random instant the
@@ -386,6 +464,8 @@ class HardwareRunner(SkillRunnerBase):
                 attrs[semconv.ATTR_SYNC_SKEW_MS] = exc.skew_ms
             span.add_event(semconv.EVENT_SENSOR_SYNC_FAILED, attrs)
             for reader in self._synced_readers:
+                self._reads[reader.sensor_id].reads += 1
+                self._reads[reader.sensor_id].stale_read(None, None)
                 self._failures[reader.sensor_id] = ROSPerceptionStale(reader.sensor_id, age_ms=None, max_age_ms=None)
                 metrics.add(semconv.METRIC_SENSORS_STALE_READS, 1, {semconv.ATTR_SENSOR_ID: reader.sensor_id})
         else:
@@ -394,6 +474,7 @@ class HardwareRunner(SkillRunnerBase):
                 span.set_attribute(semconv.ATTR_SYNC_SKEW_MS, (max(stamps) - min(stamps)) / 1e6)
             now_ns = self._clock.now_ns()
             for frame in frames.values():
+                self._reads[frame.sensor_id].reads += 1
                 self._accept_frame(frame)
                 self._telemetry.record_ms(
                     semconv.METRIC_SENSORS_AGE, frame.age_ms(now_ns), self._sensor_attrs[frame.sensor_id]
@@ -401,16 +482,31 @@ class HardwareRunner(SkillRunnerBase):
         finally:
             span.end()
 
+    def _build_run_result(self, n_ticks: int, stop_reason: StopReason) -> RunResult:
+        """The base's result, with each sensor's reads, stale reads and capture report in ``metadata["sensors"]``."""
+        if self.sensor_readers:
+            self.metadata["sensors"] = {
+                r.sensor_id: {
+                    **(r.report() if isinstance(r, ReportingReader) else {}),
+                    **self._reads[r.sensor_id].summary(),
+                }
+                for r in self.sensor_readers
+            }
+        return super()._build_run_result(n_ticks, stop_reason)
+
     def _accept_frame(self, frame: SensorFrame) -> None:
         self._frames[frame.sensor_id] = frame
 
     def _read_sensor(self, reader: SensorReader) -> None:
         """Take one reader's latest frame, or its verdict (stale, failed) on this tick's read, for the snapshot."""
         span = self._telemetry.start_span(semconv.SPAN_SENSORS_READ)
+        reads = self._reads[reader.sensor_id]
+        reads.reads += 1
         try:
             frame = reader.read_latest()
         except ROSPerceptionStale as exc:
             self._failures[reader.sensor_id] = exc
+            reads.stale_read(exc.age_ms, exc.max_age_ms)
             self._on_stale(span, exc)
         except ROSError as exc:
             self._failures[reader.sensor_id] = exc

@@ -316,9 +316,16 @@ def test_deactivate_closes_everything_even_if_one_close_fails() -> None:
     assert hal.disconnect_calls == 1
 
 
+def _stale_after_first_read(cam: ScriptedReader, age_ms: float) -> None:
+    """The start-up check sees one fresh frame; every read after it finds one ``age_ms`` old."""
+    ages = iter([cam.age_ms])
+    cam.on_read = lambda: setattr(cam, "age_ms", next(ages, age_ms))
+
+
 def test_stale_required_sensor_withholds_the_action() -> None:
     clock = FakeClock()
-    cam = ScriptedReader("cam", clock, age_ms=500.0, max_age_ms=100.0)
+    cam = ScriptedReader("cam", clock, max_age_ms=100.0)
+    _stale_after_first_read(cam, 500.0)
     runner, hal, skill = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="cam")])
     runner.activate()
     result = runner.run(2)
@@ -327,6 +334,37 @@ def test_stale_required_sensor_withholds_the_action() -> None:
     assert result.stale_reads == 2
     assert runner.recent_ticks[0].withheld_reason == "stale_sensor"
     assert runner.recent_ticks[0].stale_sensors == ["cam"]
+    figures = result.metadata["sensors"]["cam"]
+    assert (figures["reads"], figures["stale_reads"]) == (2, 2)
+    assert (figures["stale_age_ms_max"], figures["max_age_ms"]) == (500.0, 100.0)
+
+
+def test_a_required_sensor_never_fresh_fails_the_start_naming_it_and_its_frame_age() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("cam", clock, age_ms=500.0, max_age_ms=100.0)
+    runner, hal, skill = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="cam")])
+    runner.activate()
+    with pytest.raises(
+        ROSRuntimeError, match=r"sensor 'cam' delivered no frame younger than 100 ms \(its newest was 500"
+    ):
+        runner.run(2)
+    assert hal.sent == []
+    assert skill.seen == []
+    assert not runner.recent_ticks
+
+
+def test_the_first_tick_waits_until_a_slow_required_sensor_is_fresh() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("cam", clock, max_age_ms=100.0)
+    ages = iter([400.0, 300.0, 200.0])  # a camera catching up after start: three stale reads, then fresh
+    cam.on_read = lambda: setattr(cam, "age_ms", next(ages, 1.0))
+    runner, hal, _skill = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="cam")])
+    runner.activate()
+    result = runner.run(3)
+    assert result.stale_reads == 0
+    assert result.withheld_actions == 0
+    assert len(hal.sent) == 3
+    assert result.metadata["sensors"]["cam"]["stale_reads"] == 0
 
 
 def test_stale_optional_sensor_is_reported_and_tick_goes_on() -> None:

@@ -24,6 +24,7 @@ import numpy as np
 import structlog
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSError, ROSRuntimeError
+from openral_runner.backends.render_meshes import simplify_render_meshes
 
 try:
     import mujoco
@@ -44,8 +45,10 @@ _EGL_PLATFORM_DEVICE_EXT = 0x313F
 class OffscreenRenderer:
     """Renders one fixed camera of a private copy of ``model``; shadows, reflections and MSAA off.
 
-    The copy gets an offscreen buffer of at least ``width`` × ``height`` and ``offsamples = 0``;
-    the caller's model is not modified. Write the state to show into :attr:`data` (``qpos``,
+    The copy gets an offscreen buffer of at least ``width`` × ``height`` and ``offsamples = 0``,
+    and with ``mesh_cell_m`` > 0 its meshes are simplified to that grid
+    (:func:`~openral_runner.backends.render_meshes.simplify_render_meshes`); the caller's model is
+    not modified. Write the state to show into :attr:`data` (``qpos``,
     mocap poses), then call :meth:`render`. Every method must run on the constructing thread.
 
     Raises:
@@ -53,12 +56,19 @@ class OffscreenRenderer:
         RuntimeError: No GL context could be created.
     """
 
-    def __init__(self, model: Any, camera_id: int, width: int, height: int, gl: GLBackend) -> None:
+    def __init__(
+        self, model: Any, camera_id: int, width: int, height: int, gl: GLBackend, *, mesh_cell_m: float = 0.0
+    ) -> None:
         gl_module = importlib.import_module(f"mujoco.{gl}")
         model = copy.deepcopy(model)
         model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), width)
         model.vis.global_.offheight = max(int(model.vis.global_.offheight), height)
         model.vis.quality.offsamples = 0
+        triangles = int(model.mesh_facenum.sum())
+        self.triangles: tuple[int, int] = (triangles, triangles)
+        """The model's mesh triangles before and after simplification."""
+        if mesh_cell_m > 0:
+            self.triangles = simplify_render_meshes(model, mesh_cell_m)
         self.model = model
         self.data = mujoco.MjData(model)
         self._gl: Any = None

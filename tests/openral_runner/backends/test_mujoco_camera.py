@@ -135,10 +135,28 @@ def test_unknown_camera_lists_the_model_cameras() -> None:
 
 def test_wrong_param_names_the_key_and_lists_the_allowed_ones() -> None:
     hal = MujocoTwinHAL(SO101, {"settle_s": 0})
-    with pytest.raises(ROSConfigError, match="unknown key 'camra'; allowed keys: camera, gl"):
+    with pytest.raises(ROSConfigError, match="unknown key 'camra'; allowed keys: camera, gl, mesh_cell_mm"):
         MujocoCameraSensorReader.from_config(_config(backend_params={"camra": "front"}), hal=hal, robot=SO101)
     with pytest.raises(ROSConfigError, match="gl"):
         MujocoCameraSensorReader.from_config(_config(backend_params={"gl": "glx"}), hal=hal, robot=SO101)
+
+
+@pytest.mark.parametrize("cell", [-1, 51, float("nan")])
+def test_a_mesh_cell_out_of_range_names_the_field(cell: float) -> None:
+    hal = MujocoTwinHAL(SO101, {"settle_s": 0})
+    with pytest.raises(ROSConfigError, match="mesh_cell_mm"):
+        MujocoCameraSensorReader.from_config(_config(backend_params={"mesh_cell_mm": cell}), hal=hal, robot=SO101)
+
+
+def test_the_camera_renders_simplified_meshes_unless_told_not_to(twin: MujocoTwinHAL, gl_backend: str) -> None:
+    reports = {}
+    for params in ({}, {"mesh_cell_mm": 0}):
+        config = _config(backend_params=params)
+        with MujocoCameraSensorReader.from_config(config, hal=twin, robot=SO101) as reader:
+            reports[bool(params)] = reader.report()
+    full, simplified = reports[True], reports[False]
+    assert full["triangles"] == full["triangles_full"] == simplified["triangles_full"] > 300_000
+    assert simplified["triangles"] < simplified["triangles_full"] / 5
 
 
 def test_only_rgb8_and_bgr8_are_rendered() -> None:
