@@ -166,6 +166,15 @@ def telemetry(otel: OTelCapture) -> OTelCapture:
     return otel
 
 
+@pytest.fixture(scope="session", autouse=True)
+def state_home(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """``XDG_STATE_HOME`` of the session: policy servers the tests start keep their ids there, not in the user's."""
+    folder = str(tmp_path_factory.mktemp("state"))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("XDG_STATE_HOME", folder)
+        yield folder
+
+
 class DeployProcess:
     """``openral deploy`` in a child process of its own process group, as a user's shell or systemd starts it.
 

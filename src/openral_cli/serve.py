@@ -1,9 +1,10 @@
 """``openral serve``: run a policy on this machine (the one with the GPU) for robots elsewhere, over Zenoh.
 
-The server's Zenoh id is stable (derived from its key unless ``--zenoh-id`` gives one), so robots,
-which pin the server they first reached, take it back after a restart. ``--tls-*`` put every link
-behind TLS (``--mtls``: robots need a certificate too; ``--allow``: only these certificate names
-are heard); the files are checked before the policy is loaded.
+The server's Zenoh id is stable (kept per host and key, :mod:`openral_remote.identity`, unless
+``--zenoh-id`` gives one), so robots, which pin the server they first reached, take it back after a
+restart, while a second server of the key on this host gets another id and so is seen, and refused.
+``--tls-*`` put every link behind TLS (``--mtls``: robots need a certificate too; ``--allow``: only
+these certificate names are heard); the files are checked before the policy is loaded.
 """
 
 from __future__ import annotations
@@ -32,8 +33,8 @@ from openral_remote.config import (
     ZENOH_ID,
     TlsConfig,
     ZenohConfig,
-    server_zenoh_id,
 )
+from openral_remote.identity import claim_server_id
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import describe, model_hash
 from openral_rskill.base import RSkillBase
@@ -105,7 +106,8 @@ def _tls(ca: Path | None, cert: Path | None, key: Path | None, *, mutual: bool) 
     "--zenoh-id",
     metavar="HEX",
     default=None,
-    help="This server's Zenoh id, which robots pin (default: derived from the key, the same at every restart).",
+    help="This server's Zenoh id, which robots pin (default: one kept for the key on this host, "
+    "the same at every restart).",
 )
 @click.option(
     "--tls-ca", type=click.Path(path_type=Path), default=None, help="TLS: the CA certificate that signs every peer's."
@@ -156,7 +158,7 @@ def serve(
     with StopSignals() as signals, exit_codes(bool(ctx.obj["debug"])):
         params = json_object(skill_params, "--skill-params")
         limits = serve_limits(limit_values)
-        if zenoh_id is not None and not re.match(ZENOH_ID, zenoh_id):
+        if zenoh_id is not None and not re.fullmatch(ZENOH_ID, zenoh_id):
             raise ROSConfigError(
                 f"{zenoh_id!r} is not a Zenoh id",
                 field="--zenoh-id",
@@ -182,14 +184,17 @@ def serve(
         keep_message_memory()  # this process moves camera-sized messages: glibc keeps their memory for reuse
         robot, rate = _robot_and_rate(robot_id, scene_path, rate_hz)
         keys = PolicyKeys.of(robot.robot_id, name or skill_id)
-        if zenoh.id is None:
-            zenoh = zenoh.model_copy(update={"id": server_zenoh_id(keys.prefix)})
-        with command_span(
-            "serve",
-            scene_path or Path(keys.prefix),
-            otlp_endpoint=otlp_endpoint,
-            otlp_protocol=otlp_protocol,
-            trace_sample_ratio=None,
+        identity = claim_server_id(keys, zenoh.id)
+        zenoh = zenoh.model_copy(update={"id": identity.zid})
+        with (
+            identity,
+            command_span(
+                "serve",
+                scene_path or Path(keys.prefix),
+                otlp_endpoint=otlp_endpoint,
+                otlp_protocol=otlp_protocol,
+                trace_sample_ratio=None,
+            ),
         ):
             plugin = SKILL_REGISTRY.resolve(skill_id, field="--skill")
             skill: RSkillBase = plugin.from_config(params, robot=robot, rate_hz=rate)

@@ -49,7 +49,7 @@ def serve_limits(values: dict[str, Any]) -> ServeLimits:
     except ValidationError as exc:
         error = exc.errors()[0]
         field = str(error["loc"][0]) if error["loc"] else ""
-        raise ROSConfigError(f"{_option_name(field)}: {error['msg']}", field=_option_name(field)) from None
+        raise ROSConfigError(str(error["msg"]), field=_option_name(field)) from None
 
 
 __all__ = ["limit_options", "serve_limits"]

@@ -69,7 +69,7 @@ def config_error_from_validation(
     first = errors[0]
     field = _dotted(first["loc"])
     if field_prefix:
-        field = f"{field_prefix}.{field}" if field else field_prefix
+        field = f"{field_prefix}{'' if field.startswith('[') else '.'}{field}" if field else field_prefix
     message, hint = _describe(first, model)
     if len(errors) > 1:
         others = ", ".join(_dotted(e["loc"]) or "<root>" for e in errors[1:4])

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import codecs
 import json
+import math
 import os
 import stat
 from pathlib import Path
@@ -234,6 +235,25 @@ def load_config_file(
     return parse_config_text(text, source=str(file), field=field, json_text=file.suffix.lower() == ".json")
 
 
+def load_json_file(
+    path: str | os.PathLike[str], *, field: str | None = None, missing_hint: str = "check the path"
+) -> Any:
+    """Read and parse a JSON file a tool or a person wrote (a checkpoint's ``config.json``, a recorded trajectory).
+
+    Bounded as every configuration file (size, nesting, duplicate keys), and its numbers finite:
+    JSON has no infinity or NaN, yet Python's parser reads ``Infinity``, ``NaN`` and a number no
+    float can hold (``1e400``) as one.
+
+    Raises:
+        ROSConfigError: One line naming the file: unreadable, not JSON, too deep or too large, or a
+            number that is not finite.
+    """
+    file = expand_user_path(path, field=field)
+    text = read_config_file(file, field=field, missing_hint=missing_hint)
+    data = _parse_json(text, source=str(file), field=field, finite=True)
+    return to_plain(data, source=str(file), field=field)
+
+
 # -- YAML --------------------------------------------------------------------------------------------
 
 
@@ -320,7 +340,7 @@ def _parse_yaml(text: str, *, source: str, field: str | None) -> Any:
             loader.dispose()
 
 
-def _parse_json(text: str, *, source: str, field: str | None) -> Any:
+def _parse_json(text: str, *, source: str, field: str | None, finite: bool = False) -> Any:
     def unique(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
         out: dict[str, Any] = {}
         for key, value in pairs:
@@ -330,6 +350,8 @@ def _parse_json(text: str, *, source: str, field: str | None) -> Any:
         return out
 
     try:
+        if finite:
+            return json.loads(text, object_pairs_hook=unique, parse_float=_finite, parse_constant=_no_constant)
         return json.loads(text, object_pairs_hook=unique)
     except json.JSONDecodeError as exc:
         raise ROSConfigError(
@@ -339,6 +361,17 @@ def _parse_json(text: str, *, source: str, field: str | None) -> Any:
         raise ROSConfigError(f"{source} is not valid JSON: {exc}", field=field) from exc
     except RecursionError as exc:
         raise ROSConfigError(f"{source} is nested too deeply", field=field) from exc
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text[:24]} is too large for a float")
+    return value
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a JSON number")
 
 
 # -- plain data ----------------------------------------------------------------------------------------

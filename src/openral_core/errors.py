@@ -77,6 +77,25 @@ class ROSLicenseError(ROSConfigError):
     """A skill's licence is not accepted by the deployment's licence policy."""
 
 
+def renamed_field(exc: ROSConfigError, prefixes: tuple[str, ...], prefix: str) -> ROSConfigError:
+    """``exc`` naming its field under ``prefix`` where the field starts with one of ``prefixes``; else ``exc`` itself.
+
+    A part names its parameters where it usually sits (a skill's as ``vla.params``); built from
+    another block of the file (``takeover.params``), its errors must name that block. Other kinds
+    of configuration error (a missing dependency, a refused licence) pass unchanged.
+    """
+    field = exc.field
+    if type(exc) is not ROSConfigError or field is None:
+        return exc
+    for old in prefixes:
+        if field == old or field.startswith(f"{old}."):
+            message = str(exc).removeprefix(f"{one_line(field)}: ")
+            if exc.hint:
+                message = message.removesuffix(f" ({one_line(exc.hint)})")
+            return ROSConfigError(message, field=prefix + field.removeprefix(old), hint=exc.hint)
+    return exc
+
+
 class ROSRuntimeError(ROSError):
     """Something failed while running: a device, a pipeline, a bus transaction."""
 

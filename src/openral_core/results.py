@@ -151,7 +151,9 @@ class RunResult(BaseModel):
     """Honest timing and fault totals for one ``run()``.
 
     Attributes:
-        effective_rate_hz: Ticks divided by the wall time from the first tick start to the last tick end.
+        duration_s: Wall time of the run, to the end of its last tick (see the field).
+        effective_rate_hz: The rate the ticks started at, over their own span (see the field); not
+            ``n_ticks / duration_s``, which also counts the last tick's own time.
         start_jitter_us_*: How late each tick started relative to its scheduled slot.
         missed_slots: Slots skipped after overruns (the loop never bursts to catch up).
         overhead_us_mean: Tick time not spent in the five phases (runner bookkeeping).
@@ -162,10 +164,22 @@ class RunResult(BaseModel):
 
     runner_name: str = "inference_runner"
     skill_id: str | None = None
-    rate_hz: float = Field(gt=0)
-    n_ticks: int = Field(ge=0)
-    duration_s: float = Field(default=0.0, ge=0)
-    effective_rate_hz: float = Field(default=0.0, ge=0)
+    rate_hz: float = Field(gt=0, description="The rate asked for (ticks per second).")
+    n_ticks: int = Field(ge=0, description="Ticks run.")
+    duration_s: float = Field(
+        default=0.0,
+        ge=0,
+        description="Wall time of the run: from its start (slot 0 of the schedule) to the end of its last tick. "
+        "It includes the last tick's own time and any stall in it, so n_ticks / duration_s reads below "
+        "effective_rate_hz by that much (at 10 kHz, a last tick of 4 ms in a 1000-tick run: about 4 %).",
+    )
+    effective_rate_hz: float = Field(
+        default=0.0,
+        ge=0,
+        description="The rate the ticks started at: (n_ticks - 1) / (last tick's start - first tick's start); "
+        "0 with fewer than two ticks. A run that kept its schedule reads rate_hz exactly, whatever its last "
+        "tick took; a stall in it shows in tick_ms_max and missed_slots instead.",
+    )
     tick_ms_mean: float = 0.0
     tick_ms_p50: float = 0.0
     tick_ms_p99: float = 0.0

@@ -46,9 +46,10 @@ from openral_remote.codec import decode, encode
 from openral_remote.config import ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
-from openral_remote.observation import world_fields
+from openral_remote.observation import request_fields
 from openral_remote.server import ERROR_SUPERSEDED
 from openral_remote.session import Answer, NoReply, PeerError, Querier, RemoteTimeout, ask, open_session
+from openral_rskill.chunks import ChunkRequest
 
 try:
     import zenoh
@@ -70,7 +71,9 @@ __all__ = [
 _log = structlog.get_logger(__name__)
 
 _SHM_POOL_BYTES = 32 << 20
-SHAPE_FIELDS = frozenset({"chunk_size", "action_names", "control_mode", "anchor", "dt_s", "schema_version"})
+SHAPE_FIELDS = frozenset(
+    {"chunk_size", "action_names", "control_mode", "anchor", "dt_s", "observation_steps", "schema_version"}
+)
 """Meta fields a running robot cannot take a change of, whatever ``on_model_change`` says."""
 
 
@@ -218,8 +221,14 @@ class RemotePolicyClient:
             hint="if that server is the one meant, pin its id (server_id) or set on_server_change: accept",
         )
 
-    def infer(self, world: WorldState) -> np.ndarray:
-        """The chunk the server computes from ``world``: ``(rows, dims)`` float64.
+    def infer(self, request: WorldState | ChunkRequest, *, seed: int | None = None) -> np.ndarray:
+        """The chunk the server computes for ``request``: ``(rows, dims)`` float64.
+
+        Args:
+            request: The executor's request (its history and prefix within the policy's bounds
+                go along), or a bare observation.
+            seed: The episode's seed, which the policy's sampling draws from, when the request
+                carries none: sent with every request, so a lost reset cannot unseed it.
 
         Raises:
             ServerUnavailable: The server is down, or nobody answered (it is then marked down).
@@ -232,7 +241,15 @@ class RemotePolicyClient:
             raise ServerUnavailable(f"the policy server at {self.keys.prefix} is down")
         meta = self.meta
         assert meta is not None
-        fields, jpeg = world_fields(world, meta.observation, jpeg_quality=self.jpeg_quality)
+        asked = request if isinstance(request, ChunkRequest) else ChunkRequest(request)
+        fields, jpeg = request_fields(
+            asked,
+            meta.observation,
+            history=meta.observation_steps - 1,
+            prefix_rows=meta.chunk_size,
+            seed=seed,
+            jpeg_quality=self.jpeg_quality,
+        )
         message = encode(fields, jpeg=jpeg)
         payload = self._shared(message)
         size = len(message)

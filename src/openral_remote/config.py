@@ -11,7 +11,6 @@ so that only peers presenting a certificate with one of the listed common names 
 
 from __future__ import annotations
 
-import hashlib
 import re
 from pathlib import Path
 from typing import Literal, Self
@@ -46,16 +45,6 @@ def _check_endpoints(values: list[str]) -> list[str]:
         if not _ENDPOINT.match(value):
             raise ValueError(f"{value!r} is not a Zenoh endpoint; write e.g. 'tcp/192.168.1.20:{DEFAULT_PORT}'")
     return values
-
-
-def server_zenoh_id(prefix: str) -> str:
-    """The Zenoh id a policy server serving ``prefix`` keeps across restarts unless given another.
-
-    Robots pin the id of the server they first reached; a restarted server must present it again
-    to be taken back. Derived from the key alone, it is predictable: an identity, not a secret.
-    """
-    digest = hashlib.sha256(f"openral serve {prefix}".encode()).hexdigest()
-    return digest.lstrip("0")[:32]
 
 
 class TlsConfig(BaseModel):

@@ -2,10 +2,12 @@
 
 A client is the id in its requests' attachment. A skill whose chunk depends on the request alone
 (:meth:`~openral_rskill.base.RSkillBase.serves_many_episodes`: an ONNX or LeRobot chunk policy)
-is loaded once and shared, and a client's episode is its seed and counters. Any other skill (a
-scripted expert with a plan, a policy with a queue) gets an instance per client from the
-server's factory, configured on that client's first request, so one robot's reset never moves
-another robot's chunks.
+is loaded once and shared, and a client's episode is its seed and counters: its observation
+history, the executor's prefix and its seed come with each request (a lost request, a reset or a
+server restart leaves nothing stale behind); the seed kept here serves a client that sends it
+with its reset alone. Any other skill (a scripted expert with a plan, a policy with a queue)
+gets an instance per client from the server's factory, configured on that client's first
+request, so one robot's reset never moves another robot's chunks.
 
 At most ``max_clients`` episodes exist. A new client takes the place of the one silent longest
 once that one has been silent ``client_idle_s``; until then it is refused (the robots under way

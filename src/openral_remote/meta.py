@@ -32,6 +32,9 @@ class PolicyMeta(BaseModel):
     anchor: AnchorSpec
     dt_s: float = Field(gt=0, description="The policy's step: one chunk row per tick of this period.")
     observation: list[str] = Field(default_factory=list, description="World-state fields it reads (empty: all).")
+    observation_steps: int = Field(
+        default=1, ge=1, le=64, description="Observations one inference reads: a request carries the earlier ones."
+    )
     model_hash: str = Field(description="SHA-256 of the skill, its parameters and the files they name.")
     warmup_ms: float = Field(default=0.0, ge=0, description="How long the warm-up inference took.")
 
@@ -72,6 +75,7 @@ def describe(
         anchor=anchor,
         dt_s=1.0 / rate_hz,
         observation=list(info.observation),
+        observation_steps=info.observation_steps,
         model_hash=model_hash,
     )
 

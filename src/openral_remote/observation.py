@@ -5,6 +5,13 @@ Fields: ``stamp_ns``, ``task``, ``joint.names`` / ``joint.positions`` / ``joint.
 ``privileged.<name>``. A policy that says what it reads (``RSkillInfo.observation``: ``joint_state``,
 ``images`` or ``images.<sensor>``, ``privileged`` or ``privileged.<name>``, ``task``, ``ee_pose``)
 is sent only that: a joint-space policy never costs the link a camera image.
+
+A chunk request (:func:`request_fields`) is the current observation's fields plus what the chunk
+executor knows by tick, so a served policy sees what a local one would: ``history.<i>.<field>``
+for each earlier observation (oldest first, ``i`` from 0, the same fields as the current one),
+``obs_tick``, ``inference_delay``, ``prefix`` (the targets sent while it infers) and ``seed`` (the
+robot's episode seed). A server checks each against the policy's bounds from the header
+(:mod:`openral_remote.admission`) before decoding.
 """
 
 from __future__ import annotations
@@ -17,6 +24,14 @@ import numpy as np
 
 from openral_core import FrameEncoding, JointState, Pose6D, PrivilegedState, SensorFrame, WorldState
 from openral_remote.codec import WireFormatError
+from openral_rskill.chunks import ChunkRequest
+
+HISTORY = "history."
+"""Prefix of an earlier observation's fields: ``history.<i>.<field>``, ``i`` from 0, oldest first."""
+OBS_TICK = "obs_tick"
+INFERENCE_DELAY = "inference_delay"
+PREFIX = "prefix"
+SEED = "seed"
 
 _COMPRESSED = frozenset({FrameEncoding.JPEG, FrameEncoding.PNG})
 
@@ -72,6 +87,87 @@ def world_fields(
             if selection.value(name):
                 fields[f"privileged.{name}"] = np.asarray(values, dtype=np.float64)
     return fields, jpeg
+
+
+def request_fields(
+    request: ChunkRequest,
+    observation: Sequence[str] = (),
+    *,
+    history: int,
+    prefix_rows: int,
+    seed: int | None = None,
+    jpeg_quality: int | None = None,
+) -> tuple[dict[str, Any], dict[str, int]]:
+    """The wire fields of a chunk request, within a policy's bounds.
+
+    Args:
+        request: What the executor asks with.
+        observation: What the policy reads (as :func:`world_fields`), of each observation.
+        history: Earlier observations the policy reads at most: the latest of the request's are sent.
+        prefix_rows: Prefix rows the policy takes at most: the first of the request's are sent.
+        seed: The episode's seed, sent when the request carries none.
+        jpeg_quality: As :func:`world_fields`, for every observation.
+
+    Returns:
+        ``(fields, jpeg)``, as :func:`openral_remote.codec.encode` takes them.
+    """
+    fields, jpeg = world_fields(request.world, observation, jpeg_quality=jpeg_quality)
+    earlier = request.history[len(request.history) - history :] if history > 0 else ()
+    for index, world in enumerate(earlier):
+        past, past_jpeg = world_fields(world, observation, jpeg_quality=jpeg_quality)
+        fields.update({f"{HISTORY}{index}.{name}": value for name, value in past.items()})
+        jpeg.update({f"{HISTORY}{index}.{name}": quality for name, quality in past_jpeg.items()})
+    fields[OBS_TICK] = int(request.obs_tick)
+    fields[INFERENCE_DELAY] = int(request.inference_delay)
+    prefix = np.asarray(request.prefix, dtype=np.float64)[:prefix_rows]
+    if prefix.ndim == 2 and prefix.size:
+        fields[PREFIX] = prefix
+    seed = request.seed if request.seed is not None else seed
+    if seed is not None:
+        fields[SEED] = int(seed)
+    return fields, jpeg
+
+
+def request_from_fields(fields: Mapping[str, Any], *, action_dims: int) -> ChunkRequest:
+    """The chunk request a message carries (a bare observation is a request without history or prefix).
+
+    Raises:
+        WireFormatError: A field of the wrong type, a gap in the history, or a prefix of another width.
+    """
+    current: dict[str, Any] = {}
+    earlier: dict[int, dict[str, Any]] = {}
+    for name, value in fields.items():
+        if name.startswith(HISTORY):
+            index, dot, rest = name.removeprefix(HISTORY).partition(".")
+            if not (dot and index.isdecimal() and index == str(int(index))):
+                raise WireFormatError(f"field {name!r}: not history.<index>.<field>")
+            earlier.setdefault(int(index), {})[rest] = value
+        else:
+            current[name] = value
+    if sorted(earlier) != list(range(len(earlier))):
+        raise WireFormatError(f"history entries {sorted(earlier)[:8]} are not 0, 1, 2, ...")
+    prefix = current.get(PREFIX)
+    if prefix is None:
+        prefix = np.zeros((0, action_dims))
+    elif not isinstance(prefix, np.ndarray) or prefix.ndim != 2 or prefix.shape[1] != action_dims:
+        raise WireFormatError(f"field {PREFIX!r}: not ({action_dims}-wide) rows")
+    return ChunkRequest(
+        world_from_fields(current),
+        obs_tick=_int(current, OBS_TICK) or 0,
+        history=tuple(world_from_fields(earlier[index]) for index in range(len(earlier))),
+        prefix=np.asarray(prefix, dtype=np.float64),
+        inference_delay=_int(current, INFERENCE_DELAY) or 0,
+        seed=_int(current, SEED),
+    )
+
+
+def _int(fields: Mapping[str, Any], name: str) -> int | None:
+    value = fields.get(name)
+    if value is None:
+        return None
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise WireFormatError(f"field {name!r}: not an integer")
+    return value
 
 
 def _put_frame(fields: dict[str, Any], jpeg: dict[str, int], frame: SensorFrame, quality: int | None) -> None:

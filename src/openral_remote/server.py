@@ -1,7 +1,8 @@
 """``PolicyServer``: one policy served over Zenoh request/reply to many robots, for computers that cannot run it.
 
-* ``<prefix>/infer``: an observation (:mod:`openral_remote.observation`) in, ``{"chunk": rows}``
-  out. Requests are checked from their header before anything is decoded
+* ``<prefix>/infer``: a chunk request (:mod:`openral_remote.observation`: the observation, the
+  earlier ones the policy reads, the executor's prefix, the robot's episode seed) in,
+  ``{"chunk": rows}`` out. Requests are checked from their header before anything is decoded
   (:mod:`openral_remote.admission`), then wait in a fair queue (:mod:`openral_remote.fair_queue`):
   latest wins per client (a request overtaken by a newer one of the same client is answered
   ``superseded`` at once), clients are served in turn, and the queue is bounded. One worker
@@ -22,6 +23,7 @@ server is done with.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -36,15 +38,15 @@ from opentelemetry.trace import Span
 from openral_core import ROSConfigError
 from openral_observability import semconv, tracer
 from openral_observability.propagation import extract
-from openral_remote.admission import ImagesRead, ServeLimits, admit
+from openral_remote.admission import ImagesRead, RequestBounds, ServeLimits, admit, check_seed
 from openral_remote.codec import WireFormatError, decode, encode
 from openral_remote.config import ZenohConfig
 from openral_remote.episodes import ClientEpisode, EpisodeTable
 from openral_remote.fair_queue import INFER, RESET, FairQueue, Job
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
-from openral_remote.observation import world_from_fields
-from openral_remote.session import open_session
+from openral_remote.observation import request_from_fields
+from openral_remote.session import alive_behind, open_session
 from openral_rskill.base import RSkillBase
 from openral_rskill.chunks import ChunkRequest
 
@@ -129,6 +131,9 @@ class PolicyServer:
         self._factory = factory
         self._meta_bytes = meta.to_bytes()
         self._images = ImagesRead.of(meta.observation)
+        self._bounds = RequestBounds(
+            history=meta.observation_steps - 1, prefix_rows=meta.chunk_size, action_dims=len(meta.action_names)
+        )
         self._queue = FairQueue(self.limits.max_pending)
         self._episodes: EpisodeTable | None = None
         self._session: Any = None
@@ -206,9 +211,11 @@ class PolicyServer:
         self.skill.shutdown()
 
     def _refuse_if_served(self) -> None:
-        """Raise when a server reachable from this session already declares the key's liveliness token."""
+        """Raise when a server linked to this session, or behind an endpoint it dials, declares the key's token."""
         replies = self._session.liveliness().get(self.keys.alive, timeout=ALIVE_CHECK_TIMEOUT_S)
-        if any(reply.ok is not None for reply in replies):
+        if any(reply.ok is not None for reply in replies) or alive_behind(
+            self.zenoh, self.keys.alive, timeout_s=ALIVE_CHECK_TIMEOUT_S
+        ):
             raise ROSConfigError(
                 f"{self.keys.prefix} is already served: another policy server holds its liveliness token "
                 f"{self.keys.alive}",
@@ -233,7 +240,7 @@ class PolicyServer:
         attachment = attachment_fields(query.attachment)
         payload = _payload(query)
         try:
-            admit(payload, limits=self.limits, images=self._images)
+            admit(payload, limits=self.limits, images=self._images, bounds=self._bounds)
         except WireFormatError as exc:
             self.stats.refused += 1
             _reply_error(query, f"refused: {exc}")
@@ -281,8 +288,7 @@ class PolicyServer:
         assert self._episodes is not None
         try:
             request = json.loads(job.payload or b"{}")
-            seed = request.get("seed") if isinstance(request, dict) else None
-            episode.seed = None if seed is None else int(seed)
+            episode.seed = check_seed(request.get("seed") if isinstance(request, dict) else None)
             episode.resets += 1
             if not self._episodes.shared:  # the shared skill keeps no episode: its clients' seeds are theirs
                 skill = self._episodes.skill_of(episode)
@@ -322,16 +328,19 @@ class PolicyServer:
         )
         assert self._episodes is not None
         try:
+            episode = self._episodes.episode(job.client)
             try:
-                world = world_from_fields(decode(job.payload))
+                request = request_from_fields(decode(job.payload), action_dims=len(self.meta.action_names))
             except WireFormatError as exc:
                 raise WireFormatError(f"bad request: {exc}") from None
-            skill = self._episodes.skill_of(self._episodes.episode(job.client))
+            if request.seed is None and episode.seed is not None:  # a client that sends its seed on reset only
+                request = dataclasses.replace(request, seed=episode.seed)
+            skill = self._episodes.skill_of(episode)
             _recover(skill)  # an earlier inference failed: try again from a clean state
         except Exception as exc:
             self._fail(job, span, exc)
             return None
-        return _Prepared(job, ChunkRequest(world), skill, span, queue_ms)
+        return _Prepared(job, request, skill, span, queue_ms)
 
     def _run(self, group: list[_Prepared]) -> None:
         """One inference for the group where its skill batches; one by one otherwise, or if the batch fails."""

@@ -105,6 +105,32 @@ def open_session(config: ZenohConfig) -> Any:
         raise ROSRuntimeError(f"cannot open a Zenoh session ({config.mode}, connect {config.connect}): {text}") from exc
 
 
+def alive_behind(config: ZenohConfig, key: str, *, timeout_s: float) -> bool:
+    """Whether a liveliness token on ``key`` is live at, or behind, any endpoint ``config`` connects to.
+
+    A peer session hears the tokens of the peers it links to directly. Another peer that also
+    dials the router or peer at ``config``'s endpoint is not one of them until gossip links the
+    two, if ever (neither may listen). A client session asks the router or peer it dials, which
+    answers for everything linked to it, so each endpoint is asked through one. An endpoint that
+    cannot be reached hides nothing there is to see. The asking session declares nothing and
+    only hears replies, so it takes no ``allow`` list (which would silence the peers it asks).
+    """
+    for endpoint in config.connect:
+        asking = config.model_copy(
+            update={"mode": "client", "connect": [endpoint], "listen": [], "id": None, "allow": []}
+        )
+        try:
+            session = open_session(asking)
+        except ROSRuntimeError:
+            continue
+        try:
+            if any(reply.ok is not None for reply in session.liveliness().get(key, timeout=timeout_s)):
+                return True
+        finally:
+            session.close()
+    return False
+
+
 def request(
     session: Any, key: str, payload: bytes | None = None, *, timeout_s: float, attachment: bytes | None = None
 ) -> bytes:
@@ -193,6 +219,7 @@ __all__ = [
     "PeerError",
     "Querier",
     "RemoteTimeout",
+    "alive_behind",
     "answer",
     "ask",
     "first_answer",

@@ -1,11 +1,14 @@
 """``remote_policy``: a chunking policy that runs on another machine, served by ``openral serve``.
 
 On the robot it is a skill like any other: its chunk size, action names, representation (so its
-rows are anchored as they would be locally) and observation come from the server's ``meta``, read
-once when the skill is built (the server must be up by then, within ``connect_timeout_s``). The
-chunk executor asks for each chunk (one array, as decoded) on its worker thread, never on the
-tick; while the server is down (:meth:`available` is ``False``) the executor's fallback acts:
-``hold``, a local ``skill`` (e.g. an ONNX policy) or a safe ``stop``, configured under ``executor:``.
+rows are anchored as they would be locally), observation and observation steps come from the
+server's ``meta``, read once when the skill is built (the server must be up by then, within
+``connect_timeout_s``). The chunk executor asks for each chunk (one array, as decoded) on its
+worker thread, never on the tick. Each request carries what a local policy would be asked with:
+the earlier observations it reads (kept by the executor, so a lost request or a reset leaves no
+stale history on the server), the executor's prefix and the episode's seed. While the server is
+down (:meth:`available` is ``False``) the executor's fallback acts: ``hold``, a local ``skill``
+(e.g. an ONNX policy) or a safe ``stop``, configured under ``executor:``.
 
 The server reached when the skill is built is pinned (its Zenoh id, or ``server_id`` given up
 front): start-up and every later return must be that server unless ``on_server_change: accept``.
@@ -65,6 +68,7 @@ class RemotePolicySkill(RSkillBase):
             description=f"{self.meta.skill_id} on a policy server (model {self.meta.model_hash[:12]}, "
             f"Zenoh id {self.server_id})",
             observation=self.meta.observation,
+            observation_steps=self.meta.observation_steps,
         )
 
     @classmethod
@@ -130,12 +134,12 @@ class RemotePolicySkill(RSkillBase):
             self.client.reset(self.episode_seed)
 
     def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
-        """The server's chunk for the request's observation: the decoded array, as it came."""
-        return self.client.infer(request.world)
+        """The server's chunk for the request (observation, history, prefix, seed): the decoded array, as it came."""
+        return self.client.infer(request, seed=self.episode_seed)
 
     def _step_impl(self, world_state: WorldState) -> Action:
         """The first row of the server's chunk for ``world_state``."""
-        row = self.client.infer(world_state)[0]
+        row = self.client.infer(ChunkRequest(world_state), seed=self.episode_seed)[0]
         return Action(
             control_mode=self.meta.control_mode,
             joint_names=self.meta.action_names,

@@ -143,8 +143,9 @@ def chunk_meta(skill: ChunkSkill, *, rate_hz: float, model_hash: str) -> PolicyM
 
 
 def serve(args: Any) -> None:
-    """Serve a :class:`ChunkSkill` until SIGINT or SIGTERM, under the stable Zenoh id 'openral serve' would use."""
-    from openral_remote.config import TlsConfig, server_zenoh_id  # noqa: PLC0415
+    """Serve a :class:`ChunkSkill` until SIGINT or SIGTERM, under a Zenoh id claimed as 'openral serve' claims it."""
+    from openral_remote.config import TlsConfig  # noqa: PLC0415
+    from openral_remote.identity import claim_server_id  # noqa: PLC0415
     from openral_remote.server import PolicyServer  # noqa: PLC0415 (Zenoh: loaded where it is used)
 
     names = [f"a{i}" for i in range(args.dims)]
@@ -164,15 +165,10 @@ def serve(args: Any) -> None:
     tls = None
     if args.tls_ca is not None:
         tls = TlsConfig(ca=args.tls_ca, cert=args.tls_cert, key=args.tls_key, mutual=args.mtls)
-    zenoh = ZenohConfig(
-        listen=[args.listen],
-        lease_ms=args.lease_ms,
-        id=args.zenoh_id or server_zenoh_id(keys.prefix),
-        tls=tls,
-        allow=args.allow,
-    )
-    with PolicyServer(skill, keys=keys, zenoh=zenoh, meta=meta):
-        stop.wait()
+    with claim_server_id(keys, args.zenoh_id) as identity:
+        zenoh = ZenohConfig(listen=[args.listen], lease_ms=args.lease_ms, id=identity.zid, tls=tls, allow=args.allow)
+        with PolicyServer(skill, keys=keys, zenoh=zenoh, meta=meta):
+            stop.wait()
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -186,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--model-hash", default="model-a")
     parser.add_argument("--lease-ms", type=int, default=1000)
     parser.add_argument("--observation", nargs="+", default=["joint_state"], help="Fields read; 'all' for all.")
-    parser.add_argument("--zenoh-id", default=None, help="Zenoh id (default: the one derived from the key).")
+    parser.add_argument("--zenoh-id", default=None, help="Zenoh id (default: the one kept for the key on this host).")
     parser.add_argument("--tls-ca", default=None, help="TLS: the CA certificate (with --tls-cert, --tls-key).")
     parser.add_argument("--tls-cert", default=None)
     parser.add_argument("--tls-key", default=None)

@@ -34,15 +34,15 @@ class Issued:
     private_key: ec.EllipticCurvePrivateKey
 
 
-def make_ca(folder: Path, name: str = "openral test CA", *, days: int = 30) -> Issued:
-    """A self-signed certificate authority, ``<folder>/ca.crt`` and ``ca.key``."""
+def make_ca(folder: Path, name: str = "openral test CA", *, days: int = 30, issuer: Issued | None = None) -> Issued:
+    """A certificate authority, ``<folder>/ca.crt`` and ``ca.key``: self-signed, or an intermediate of ``issuer``."""
     key = ec.generate_private_key(ec.SECP256R1())
     subject = _name(name)
     now = dt.datetime.now(dt.UTC)
-    certificate = (
+    builder = (
         x509.CertificateBuilder()
         .subject_name(subject)
-        .issuer_name(subject)
+        .issuer_name(subject if issuer is None else issuer.certificate.subject)
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(now - dt.timedelta(minutes=5))
@@ -63,8 +63,12 @@ def make_ca(folder: Path, name: str = "openral test CA", *, days: int = 30) -> I
             critical=True,
         )
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
-        .sign(key, hashes.SHA256())
     )
+    if issuer is not None:
+        builder = builder.add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_public_key(issuer.private_key.public_key()), critical=False
+        )
+    certificate = builder.sign(key if issuer is None else issuer.private_key, hashes.SHA256())
     return _write(folder, "ca", certificate, key)
 
 

@@ -5,6 +5,11 @@ fails (or a listener that never starts) with a message about neither the file no
 every file is read once, bounded, and checked for what breaks a link: missing or unreadable, not
 PEM, outside its validity dates, a certificate that does not belong to its key or was not signed
 by the authority given, a key Zenoh cannot read (encrypted).
+
+A certificate file may carry intermediates after the certificate itself; the certificate must be
+signed by the CA, or by an intermediate of the file that is itself signed by the CA (directly or
+through others of the file). Some certificate of the file being signed by the CA, or being it,
+is not enough: the peer checks the first one.
 """
 
 from __future__ import annotations
@@ -61,7 +66,7 @@ def check_tls(tls: TlsConfig, *, prefix: str = "zenoh.tls.", now: dt.datetime | 
             field=cert_field,
             hint="give the key the certificate was made for",
         )
-    if not any(_issued_by(certificate, authority) for certificate in chain for authority in authorities):
+    if not _chains_to(chain[0], chain[1:], authorities):
         raise ROSConfigError(
             f"certificate {_shown(tls.cert)} ({_subject(chain[0])}) is not signed by the CA in {_shown(tls.ca)} "
             f"({', '.join(_subject(a) for a in authorities)})",
@@ -117,6 +122,30 @@ def _private_key(path: str, field: str) -> PrivateKeyTypes:
             field=field,
             hint="name the key: a PEM file with -----BEGIN PRIVATE KEY-----",
         ) from None
+
+
+def _chains_to(
+    certificate: x509.Certificate, intermediates: list[x509.Certificate], authorities: list[x509.Certificate]
+) -> bool:
+    """Whether ``certificate`` is signed by one of ``authorities``, or by intermediates that lead to one."""
+    trusted = list(authorities)
+    pending = [candidate for candidate in intermediates if _is_authority(candidate)]
+    while True:
+        if any(_issued_by(certificate, authority) for authority in trusted):
+            return True
+        reached = [candidate for candidate in pending if any(_issued_by(candidate, a) for a in trusted)]
+        if not reached:
+            return False
+        trusted += reached
+        pending = [candidate for candidate in pending if candidate not in reached]
+
+
+def _is_authority(certificate: x509.Certificate) -> bool:
+    """Whether ``certificate`` may sign others (basic constraints say it is a CA)."""
+    try:
+        return bool(certificate.extensions.get_extension_for_class(x509.BasicConstraints).value.ca)
+    except x509.ExtensionNotFound:
+        return False
 
 
 def _issued_by(certificate: x509.Certificate, authority: x509.Certificate) -> bool:

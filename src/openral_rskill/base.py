@@ -80,6 +80,21 @@ class OfflineConfigCheck(Protocol):
         ...
 
 
+@runtime_checkable
+class RobotInputCheck(Protocol):
+    """A skill that runs on a simulator's world state as well as a robot's, and can check the second before it runs.
+
+    A simulator gives more than a robot measures (a state vector of its own, object poses), so
+    such a skill cannot refuse these inputs when it is built. The runner factory calls
+    :meth:`check_robot_inputs` on a skill built for a robot, so ``openral validate`` refuses
+    them rather than the first tick.
+    """
+
+    def check_robot_inputs(self) -> None:
+        """Raise ``ROSConfigError`` naming an input a robot's world state cannot give."""
+        ...
+
+
 def validate_params(model: type[ParamsT], params: Mapping[str, Any], *, skill_id: str) -> ParamsT:
     """Validate a skill's ``vla.params`` as ``model``.
 

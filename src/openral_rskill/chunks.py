@@ -9,15 +9,23 @@ knows two things by tick that a policy may use:
   the observation's until the chunk can arrive (its recent p95 latency, or a simulation's virtual
   delay). Prefix-conditioned policies (real-time chunking) keep their new chunk continuous with
   them; the rows of the new chunk for those ticks are skipped when it arrives.
+
+A sampling policy (Diffusion, flow matching) draws a request's noise from :meth:`ChunkRequest.draw_seed`:
+the episode's seed mixed with the observation's tick. A chunk is then a function of its request,
+so a robot's run depends on its own seed alone, whatever else the process (a policy server
+shared by several robots) drew before it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Final
 
 import numpy as np
 
 from openral_core import WorldState
+
+_WORD: Final = 1 << 64
 
 
 @dataclass(frozen=True)
@@ -36,6 +44,8 @@ class ChunkRequest:
         inference_delay: Ticks expected to pass before the chunk can be used (the executor's
             recent p95 inference latency, or a simulation's exact virtual delay); rows ``0 ..
             inference_delay - 1`` of the new chunk are for ticks already gone by then.
+        seed: The episode's seed when the caller knows it (a policy server: the asking robot's);
+            ``None``: the skill's own (:attr:`~openral_rskill.base.RSkillBase.episode_seed`).
     """
 
     world: WorldState
@@ -43,6 +53,19 @@ class ChunkRequest:
     history: tuple[WorldState, ...] = ()
     prefix: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     inference_delay: int = 0
+    seed: int | None = None
+
+    def draw_seed(self, episode_seed: int | None) -> int | None:
+        """The seed of this request's random draws (``None``: unseeded), from its episode's seed and tick.
+
+        Args:
+            episode_seed: The skill's episode seed, used when the request carries none.
+        """
+        seed = self.seed if self.seed is not None else episode_seed
+        if seed is None:
+            return None
+        entropy = [seed % _WORD, self.obs_tick % _WORD]
+        return int(np.random.SeedSequence(entropy).generate_state(1, np.uint64)[0] >> 1)  # 63 bits: any generator's
 
     def observations(self, steps: int) -> tuple[WorldState, ...]:
         """The last ``steps`` observations, oldest first and the current one last.

@@ -3,8 +3,10 @@
 The leader (an SO-100/SO-101 leader on its own Feetech bus, torque off, its own calibration) is
 opened when the skill activates and read once per step; the action goes through the safety
 envelope like any skill's, so a leader moved too fast is clamped, never passed through.
-``vla.params`` are the leader's bus settings (:class:`~openral_hal.feetech.leader.SO10xLeaderParams`):
-``port`` and ``calibration``, or ``emulate: true`` with a ``trajectory`` to replay.
+Its parameters (``vla.params``, or ``takeover.params`` as a deployment's takeover skill) are the
+leader's bus settings (:class:`~openral_hal.feetech.leader.SO10xLeaderParams`): ``port`` and
+``calibration``, or ``emulate: true`` with a ``trajectory`` to replay; both files are read when
+the skill is built, so ``openral validate`` refuses what connecting would.
 """
 
 from __future__ import annotations

@@ -127,6 +127,10 @@ class LeRobotPolicySkill(RSkillBase):
         """The device the policy runs on once configured."""
         return None if self._policy is None else str(self._policy.device)
 
+    def check_robot_inputs(self) -> None:
+        """On a robot: a state of the robot's joints, no simulator's environment state."""
+        self.inputs.check_robot()
+
     def action_anchor(self) -> Anchor:
         if ActionRepresentation(self.params.representation) is ActionRepresentation.RELATIVE_TO_STATE:
             return StateOffsetAnchor(self.robot.joint_names)
@@ -165,19 +169,22 @@ class LeRobotPolicySkill(RSkillBase):
         if self._policy is not None:
             self._policy.reset(self.episode_seed)
 
-    def _infer(self, observations: list[dict[str, np.ndarray]], task: str) -> np.ndarray:
-        rows = self._policy.chunk(observations, task)[: self.rows]
+    def _infer(self, observations: list[dict[str, np.ndarray]], task: str, seed: int | None = None) -> np.ndarray:
+        rows = self._policy.chunk(observations, task, seed)[: self.rows]
         return rows if self.units.identity else self.units.to_radians(rows)
 
     def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
         worlds = request.observations(self.checkpoint.observation_steps)
-        return self._infer([self.inputs.arrays(w) for w in worlds], request.world.task or "")
+        seed = request.draw_seed(self.episode_seed)
+        return self._infer([self.inputs.arrays(w) for w in worlds], request.world.task or "", seed)
 
     def serves_many_episodes(self) -> bool:
         """A chunk policy's chunk is a function of its request; a per-tick one keeps a queue of actions.
 
-        Sampling policies (Diffusion, flow matching) draw their noise from the process's torch
-        generator: shared between robots, a run is reproducible per server, not per robot.
+        Its history comes with the request, and a sampling policy (Diffusion, flow matching) draws
+        each request's noise from the request's episode seed and tick
+        (:meth:`~openral_rskill.chunks.ChunkRequest.draw_seed`): shared between robots, each
+        robot's run is reproducible from its own seed.
         """
         return self.checkpoint.chunk_size > 1
 
@@ -189,7 +196,8 @@ class LeRobotPolicySkill(RSkillBase):
         steps = self.checkpoint.observation_steps
         observations = [[self.inputs.arrays(w) for w in request.observations(steps)] for request in requests]
         tasks = [request.world.task or "" for request in requests]
-        chunks = [rows[: self.rows] for rows in self._policy.chunks(observations, tasks)]
+        seeds = [request.draw_seed(self.episode_seed) for request in requests]
+        chunks = [rows[: self.rows] for rows in self._policy.chunks(observations, tasks, seeds)]
         return chunks if self.units.identity else [self.units.to_radians(rows) for rows in chunks]
 
     def _step_impl(self, world_state: WorldState) -> Action:

@@ -61,7 +61,8 @@ class EnvelopeSafetyClient(SafetyClient, SafetyStateObserver, SafetyCommitListen
     Raises:
         ROSConfigError: The envelope has a workspace box but the robot's manifest names no
             MuJoCo model with an ``ee_site`` (field ``safety.workspace_min``), or the model
-            cannot be read.
+            cannot be read; or ``max_joint_speed_factor`` is so small that a joint's step
+            underflows to zero.
     """
 
     def __init__(
@@ -84,6 +85,13 @@ class EnvelopeSafetyClient(SafetyClient, SafetyStateObserver, SafetyCommitListen
         self._upper = tuple(j.upper for j in robot.joints)
         factor = self.envelope.max_joint_speed_factor
         self._max_step = tuple(j.velocity_limit * factor / rate_hz for j in robot.joints)
+        if not all(step > 0 for step in self._max_step):
+            raise ROSConfigError(
+                f"{factor:g} of the joints' velocity limits at {rate_hz:g} Hz is a step of 0 rad per tick: "
+                "no joint could move",
+                field="safety.max_joint_speed_factor",
+                hint="raise it: 1.0 is the robot's full speed, 0.1 to 0.5 a careful start",
+            )
         self._clamp = mode is SafetyMode.CLAMP
         self._reference: list[float] | None = None
         # Box violation of the row last returned by check_action, and of the reference when that

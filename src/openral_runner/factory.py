@@ -14,6 +14,7 @@ import structlog
 
 from openral_core import RobotEnvironment, RobotManifest, ROSConfigError
 from openral_core.config_files import resolve_user_path
+from openral_core.errors import renamed_field
 from openral_core.plugins import (
     HALS_GROUP,
     OBSERVERS_GROUP,
@@ -25,7 +26,7 @@ from openral_core.plugins import (
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.protocol import HAL
 from openral_observability.observer import TickObserver
-from openral_rskill.base import OfflineConfigCheck, RSkillBase
+from openral_rskill.base import OfflineConfigCheck, RobotInputCheck, RSkillBase
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.clock import Clock
 from openral_runner.envelope import EnvelopeSafetyClient
@@ -55,6 +56,9 @@ SAFETY_CLIENT_REGISTRY = PluginRegistry(SAFETY_CLIENTS_GROUP, kind="safety clien
 OBSERVER_REGISTRY = PluginRegistry(OBSERVERS_GROUP, kind="observer", field="observers[].id")
 """Observer id → observer class (``Cls.from_config(params, robot=..., env=..., base_dir=...)``)."""
 
+_SKILL_PARAMS = ("vla.params", "params")
+"""How a skill names its parameters in its errors (a deployment's ``vla.params``, or its own)."""
+
 JOINT_STATE_MAX_AGE_TICKS = 3
 """A joint state older than this many periods is stale (it is read every tick)."""
 
@@ -83,6 +87,8 @@ def build_runner(
     hal: HAL = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
     skill: RSkillBase = SKILL_REGISTRY[env.vla.id].from_config(skill_params, robot=robot, rate_hz=env.rate_hz)
     _check_cameras(skill, env)
+    if isinstance(skill, RobotInputCheck):
+        skill.check_robot_inputs()
     safety = _safety_client(env, robot)
     readers = [_build_reader(index, env, hal, robot, base_dir) for index, _ in enumerate(env.sensors)]
     aggregator_kwargs: dict[str, Any] = {
@@ -219,9 +225,11 @@ def _takeover(env: RobotEnvironment, robot: RobotManifest, safety: SafetyClient)
     spec = env.takeover
     if spec is None:
         return None
-    skill: RSkillBase = SKILL_REGISTRY.resolve(spec.skill, field="takeover.skill").from_config(
-        spec.params, robot=robot, rate_hz=env.rate_hz
-    )
+    skill_cls = SKILL_REGISTRY.resolve(spec.skill, field="takeover.skill")
+    try:
+        skill: RSkillBase = skill_cls.from_config(spec.params, robot=robot, rate_hz=env.rate_hz)
+    except ROSConfigError as exc:  # the skill names its parameters as a vla's
+        raise renamed_field(exc, _SKILL_PARAMS, "takeover.params") from exc
     if isinstance(safety, EnvelopeSafetyClient):
         max_step = safety.max_step
     else:

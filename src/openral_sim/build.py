@@ -20,6 +20,7 @@ from openral_core import (
     TickResult,
     WorldState,
 )
+from openral_core.errors import renamed_field
 from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
 from openral_runner.factory import SKILL_REGISTRY
@@ -165,13 +166,7 @@ def _fallback_skill(scene: SimEnvironment, spec: EnvSpec) -> RSkillBase | None:
 
 def _renamed(exc: ROSConfigError, prefix: str) -> ROSConfigError:
     """``exc`` naming the skill's parameters as ``prefix`` (a skill names them as a deployment's ``vla.params``)."""
-    field = exc.field
-    if type(exc) is not ROSConfigError or field is None:
-        return exc
-    for old in _PARAMS_PREFIXES:
-        if field == old or field.startswith(f"{old}."):
-            return ROSConfigError(str(exc).removeprefix(f"{field}: "), field=prefix + field.removeprefix(old))
-    return exc
+    return renamed_field(exc, _PARAMS_PREFIXES, prefix)
 
 
 class SkillFailed(ROSSkillError):

@@ -84,10 +84,8 @@ def test_a_leader_refuses_commands_and_a_bad_trajectory_names_the_field(tmp_path
     robot = load_robot_manifest("so101_follower")
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps([{"t": 1.0, "positions": {"shoulder_pan": 0.0}}, {"t": 0.5, "positions": {}}]))
-    leader = SO10xLeaderArm(robot, {"emulate": True, "trajectory": str(bad)})
-    with pytest.raises(ROSConfigError, match=r"vla\.params\.trajectory"):
-        leader.connect()
-    assert not leader.is_connected
+    with pytest.raises(ROSConfigError, match=r"vla\.params\.trajectory: .*times do not increase"):
+        SO10xLeaderArm(robot, {"emulate": True, "trajectory": str(bad)})  # read when built: validate reads it too
     leader = SO10xLeaderArm(robot, {"emulate": True})
     leader.connect()
     try:

@@ -18,7 +18,7 @@ import pytest
 
 from openral_core import JointState, ROSConfigError, WorldState
 from openral_remote.client import RemotePolicyClient, ServerUnavailable
-from openral_remote.config import TlsConfig, ZenohConfig, server_zenoh_id
+from openral_remote.config import TlsConfig, ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.testing import ChunkSkill, free_endpoint
 from openral_remote.testing_tls import Issued, make_ca, make_certificate
@@ -121,14 +121,13 @@ def _robot(endpoint: str, issued: Issued | None, ca: Issued | Path, *, allow: tu
 
 
 def test_a_robot_with_a_valid_certificate_gets_chunks_over_mutual_tls(
-    pki: Pki, tls_server, tls_endpoint: str, connect, keys: PolicyKeys
+    pki: Pki, tls_server, tls_endpoint: str, connect
 ) -> None:
     tls_server("--mtls")
     remote = connect(_robot(tls_endpoint, pki.robot, pki.ca))
     expected = ChunkSkill(["a0", "a1"]).rows(_world())
     np.testing.assert_array_equal(remote.infer(_world()), expected)
     remote.reset(seed=3)
-    assert remote.server_id == server_zenoh_id(keys.prefix)
 
 
 def test_a_mutual_tls_server_refuses_a_robot_without_a_valid_certificate(
@@ -239,6 +238,8 @@ def _bad_files(pki: Pki, folder: Path) -> dict[str, tuple[TlsConfig, Path, str]]
         )
     )
     ca, robot, missing = str(pki.ca.cert), pki.robot, folder / "missing.crt"
+    foreign_with_ca = folder / "foreign-with-ca.crt"  # another CA's certificate, this CA's appended after it
+    foreign_with_ca.write_bytes(pki.foreign_robot.cert.read_bytes() + pki.ca.cert.read_bytes())
 
     def block(ca: str = ca, cert: Path = robot.cert, key: Path = robot.key) -> TlsConfig:
         return TlsConfig(ca=ca, cert=str(cert), key=str(key))
@@ -250,6 +251,11 @@ def _bad_files(pki: Pki, folder: Path) -> dict[str, tuple[TlsConfig, Path, str]]
         "key of another certificate": (block(key=pki.intruder.key), robot.cert, "cert"),
         "CA not a certificate": (block(ca=str(not_pem)), not_pem, "ca"),
         "CA not the signer": (block(ca=str(pki.foreign_ca.cert)), robot.cert, "cert"),
+        "CA appended to another CA's certificate": (
+            block(cert=foreign_with_ca, key=pki.foreign_robot.key),
+            foreign_with_ca,
+            "cert",
+        ),
         "key is a certificate": (block(key=robot.cert), robot.cert, "key"),
         "encrypted key": (block(key=encrypted), encrypted, "key"),
     }
@@ -264,6 +270,7 @@ def _bad_files(pki: Pki, folder: Path) -> dict[str, tuple[TlsConfig, Path, str]]
         "key of another certificate",
         "CA not a certificate",
         "CA not the signer",
+        "CA appended to another CA's certificate",
         "key is a certificate",
         "encrypted key",
     ],
@@ -281,3 +288,24 @@ def test_a_bad_tls_file_is_one_line_naming_it(pki: Pki, tmp_path: Path, fault: s
 def test_good_tls_files_pass(pki: Pki) -> None:
     check_tls(TlsConfig(ca=str(pki.ca.cert), cert=str(pki.server.cert), key=str(pki.server.key)))
     check_tls(TlsConfig(ca=str(pki.ca.cert)))
+
+
+def test_a_certificate_signed_by_an_intermediate_passes_only_with_the_intermediate_in_its_file(
+    pki: Pki, tmp_path: Path
+) -> None:
+    upper = make_ca(tmp_path / "upper", "intermediate 1", issuer=pki.ca)
+    lower = make_ca(tmp_path / "lower", "intermediate 2", issuer=upper)
+    leaf = make_certificate(tmp_path, "leaf", lower)
+    chain = tmp_path / "chain.crt"  # as a CA hands it out: the certificate first, intermediates in any order
+    chain.write_bytes(leaf.cert.read_bytes() + upper.cert.read_bytes() + lower.cert.read_bytes())
+    check_tls(TlsConfig(ca=str(pki.ca.cert), cert=str(chain), key=str(leaf.key)))
+    check_tls(TlsConfig(ca=str(upper.cert), cert=str(chain), key=str(leaf.key)))  # an intermediate as the CA
+    partial = tmp_path / "partial.crt"  # the link to the CA is missing
+    partial.write_bytes(leaf.cert.read_bytes() + lower.cert.read_bytes())
+    with pytest.raises(ROSConfigError, match="is not signed by the CA"):
+        check_tls(TlsConfig(ca=str(pki.ca.cert), cert=str(partial), key=str(leaf.key)))
+    not_an_authority = tmp_path / "by-a-leaf.crt"  # a certificate that is no CA cannot vouch for another
+    signed_by_leaf = make_certificate(tmp_path / "by-leaf", "signed-by-leaf", leaf)
+    not_an_authority.write_bytes(signed_by_leaf.cert.read_bytes() + leaf.cert.read_bytes())
+    with pytest.raises(ROSConfigError, match="is not signed by the CA"):
+        check_tls(TlsConfig(ca=str(lower.cert), cert=str(not_an_authority), key=str(signed_by_leaf.key)))

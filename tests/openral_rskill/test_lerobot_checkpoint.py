@@ -189,3 +189,74 @@ def test_configure_refuses_as_a_config_error_saying_what_is_needed(tmp_path: Pat
         assert "uv sync --python 3.12 --extra lerobot" in str(cause)
     else:  # LeRobot is there, and the placeholder files are no checkpoint it can load
         assert "LeRobot cannot load" in str(cause)
+
+
+def _validate(tmp_path: Path, folder: Path) -> tuple[int, str]:
+    """``openral validate`` of a deployment running ``folder`` on an SO-101: its exit code and output."""
+    from click.testing import CliRunner  # noqa: PLC0415
+
+    from openral_cli.main import cli  # noqa: PLC0415
+
+    config = tmp_path / "deploy.yaml"
+    config.write_text(
+        "hal: {robot_id: so101_follower, adapter: 'null'}\n"
+        f"vla: {{id: lerobot_policy, params: {{path: {json.dumps(str(folder))}}}}}\n"
+        "safety: {client: envelope}\n"
+    )
+    out = CliRunner().invoke(cli, ["validate", str(config)])
+    return out.exit_code, out.output
+
+
+@pytest.mark.parametrize(
+    ("inputs", "says"),
+    [
+        ({"observation.state": {"type": "STATE", "shape": [14]}}, "observation.state has 14 values but robot "
+         "'so101_follower' has 6 joints"),
+        ({"observation.state": {"type": "STATE", "shape": [6]}, "observation.environment_state": {"type": "ENV",
+          "shape": [3]}}, "reads observation.environment_state, which only a simulator gives"),
+    ],
+    ids=["state-size", "environment-state"],
+)  # fmt: skip
+def test_validate_refuses_on_a_robot_what_only_a_simulator_gives(
+    tmp_path: Path, inputs: dict[str, Any], says: str
+) -> None:
+    code, output = _validate(tmp_path, checkpoint(tmp_path, input_features=inputs))
+    assert code == 2, output
+    (line,) = output.strip().splitlines()
+    assert says in line, line
+
+
+def test_a_simulators_state_vector_of_another_size_is_still_read_in_simulation(tmp_path: Path) -> None:
+    folder = checkpoint(tmp_path, input_features={"observation.state": {"type": "STATE", "shape": [14]}})
+    skill = LeRobotPolicySkill.from_config({"path": str(folder)}, robot=SO101, rate_hz=30)  # as a scene builds it
+    assert skill.inputs.state is not None
+    assert skill.inputs.state.shape == (14,)
+
+
+def test_a_config_json_nested_too_deeply_is_a_config_error_naming_it(tmp_path: Path) -> None:
+    folder = checkpoint(tmp_path)
+    (folder / "config.json").write_text("[" * 100_000 + "]" * 100_000)
+    code, output = _validate(tmp_path, folder)
+    assert code == 2, output
+    (line,) = output.strip().splitlines()
+    assert f"{folder / 'config.json'} is nested too deeply" in line
+
+
+def test_weights_that_do_not_cover_the_policy_are_named_shortly(tmp_path: Path) -> None:
+    from openral_rskill.lerobot.checkpoint import weights_mismatch  # noqa: PLC0415
+
+    read = Checkpoint.read(str(checkpoint(tmp_path)))
+    missing = ", ".join(f'"model.layer{i}.weight"' for i in range(40))
+    error = RuntimeError(  # as torch's load_state_dict and safetensors' load_model word a strict load's refusal
+        f"Error(s) in loading state_dict for ACTPolicy:\n\tMissing key(s) in state_dict: {missing}. "
+        '\n\tUnexpected key(s) in state_dict: "extra.bias". '
+    )
+    refused = weights_mismatch(read, error)
+    assert refused is not None
+    text = str(refused)
+    assert text.startswith(f"params.path: {read.path / 'model.safetensors'} does not hold the weights")
+    assert "missing tensors model.layer0.weight, model.layer1.weight, model.layer10.weight" in text
+    assert "and 36 more" in text
+    assert "unexpected tensors extra.bias" in text
+    assert len(text) < 400
+    assert weights_mismatch(read, RuntimeError("CUDA out of memory")) is None

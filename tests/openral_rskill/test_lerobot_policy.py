@@ -195,7 +195,8 @@ def test_a_diffusion_chunk_with_history_is_lerobots_own_for_the_same_seed(
     assert skill.info.observation_steps == 2
     before, now = _world(2, stamp=1), _world(3, stamp=2)
     skill.reset(seed=7)
-    chunk = skill.step_chunk(ChunkRequest(now, obs_tick=1, history=(before,)))
+    request = ChunkRequest(now, obs_tick=1, history=(before,))
+    chunk = skill.step_chunk(request)
     policy, pre, post = _lerobot(checkpoints["diffusion"])
     with torch.inference_mode():
         steps = [pre(_lerobot_input(w)) for w in (before, now)]
@@ -203,8 +204,9 @@ def test_a_diffusion_chunk_with_history_is_lerobots_own_for_the_same_seed(
         for key in ("observation.state", "observation.images.front"):
             batch[key] = torch.stack([s[key] for s in steps], dim=1)
         policy.reset()
-        torch.manual_seed(7)
-        expected = post(policy.predict_action_chunk(batch))[0].double().numpy()
+        generator = torch.Generator().manual_seed(request.draw_seed(7))
+        noise = torch.randn((1, 16, 6), generator=generator)  # the episode's seed and the request's tick
+        expected = post(policy.predict_action_chunk(batch, noise=noise))[0].double().numpy()
     assert chunk.shape == (8, 6)
     assert np.abs(chunk - expected).max() <= TOLERANCE
 

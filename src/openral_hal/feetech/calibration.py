@@ -108,13 +108,15 @@ class ArmCalibration(BaseModel):
                 )
 
 
-def load_calibration(path: Path) -> ArmCalibration:
+def load_calibration(path: Path, *, field: str = "hal.params.calibration") -> ArmCalibration:
     """Read a calibration file (``.json``, or YAML for any other suffix); ``~`` is expanded.
+
+    Args:
+        field: Where the deployment names the file, for errors.
 
     Raises:
         ROSConfigError: The file is missing, unreadable, not a regular file, or invalid.
     """
-    field = "hal.params.calibration"
     data = load_config_file(
         path, field=field, missing_hint="create it with: openral calibrate --robot <id> --port <port> --output <file>"
     )

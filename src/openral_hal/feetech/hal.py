@@ -104,7 +104,7 @@ class SO10xFollowerHAL:
         self.joint_names = manifest.joint_names
         self._index = JointIndex(self.robot_id, self.joint_names)
         if self.params.calibration is not None:
-            self.calibration = load_calibration(self.params.calibration)
+            self.calibration = load_calibration(self.params.calibration, field=f"{self.field_prefix}.calibration")
         else:
             self.calibration = ArmCalibration.from_manifest(manifest)
         self.calibration.check(manifest)

@@ -9,15 +9,15 @@ refuses a mismatch in a fraction of a second.
 
 from __future__ import annotations
 
-import json
 import os
 import re
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
 from openral_core import ROSConfigError
-from openral_core.config_files import read_config_file, resolve_user_path
+from openral_core.config_files import load_json_file, resolve_user_path
 
 REQUIRED_FILES: Final = (
     "config.json",
@@ -31,6 +31,10 @@ CHUNKING_TYPES: Final = frozenset({"act", "diffusion", "smolvla", "pi0", "pi05",
 """Policies whose ``predict_action_chunk`` returns several future actions."""
 
 _HUB_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
+_KEY_LINE = re.compile(r"(Missing|Unexpected) key\(s\) in state_dict: ([^\n]*)")
+_QUOTED = re.compile(r'"([^"]+)"')
+_NAMES_SHOWN = 4
+_FIELD: Final = "params.path"
 
 STATE: Final = "observation.state"
 ENVIRONMENT_STATE: Final = "observation.environment_state"
@@ -74,7 +78,7 @@ class Checkpoint:
     trained_device: str
 
     @classmethod
-    def read(cls, value: str, base_dir: Path | None = None, *, field: str = "params.path") -> Checkpoint:
+    def read(cls, value: str, base_dir: Path | None = None, *, field: str = _FIELD) -> Checkpoint:
         """The checkpoint in folder ``value``; refused in one line when it is not a complete local one.
 
         Raises:
@@ -133,18 +137,57 @@ class Checkpoint:
             trained_device=str(config.get("device") or "cpu"),
         )
 
+    def check_type(self, known: Iterable[str]) -> None:
+        """Refuse a policy type the installed LeRobot does not know, naming the ones it does.
+
+        Raises:
+            ROSConfigError: ``policy_type`` is not among ``known``.
+        """
+        names = sorted(known)
+        if self.policy_type not in names:
+            raise ROSConfigError(
+                f"{self.path / 'config.json'} names policy type {self.policy_type!r}, which this LeRobot does not know "
+                f"(it knows {', '.join(names)})",
+                field=_FIELD,
+                hint="check the type in config.json, or install the LeRobot version that wrote the checkpoint",
+            )
+
     @property
     def cameras(self) -> list[str]:
         """The camera names the policy reads (``observation.images.<name>``)."""
         return [key.removeprefix(IMAGE_PREFIX) for key in self.inputs if key.startswith(IMAGE_PREFIX)]
 
 
+def weights_mismatch(checkpoint: Checkpoint, error: BaseException) -> ROSConfigError | None:
+    """The error to give for a load that found ``model.safetensors`` not covering the policy, or ``None``.
+
+    ``error`` is what PyTorch (or safetensors) raises for a strict load: its message lists the
+    missing and unexpected tensor names, one kind per line. A policy left partly at its random
+    initialisation must never act, so either kind refuses the checkpoint.
+    """
+    found = {kind: _QUOTED.findall(names) for kind, names in _KEY_LINE.findall(str(error))}
+    parts = [
+        f"{kind.lower()} tensors {_shortened(names)}"
+        for kind, names in (("Missing", found.get("Missing", [])), ("Unexpected", found.get("Unexpected", [])))
+        if names
+    ]
+    if not parts:
+        return None
+    return ROSConfigError(
+        f"{checkpoint.path / 'model.safetensors'} does not hold the weights of the {checkpoint.policy_type} policy "
+        f"its config.json describes: {'; '.join(parts)}",
+        field=_FIELD,
+        hint="use the model.safetensors lerobot-train saved beside this config.json",
+    )
+
+
+def _shortened(names: Sequence[str]) -> str:
+    shown = ", ".join(sorted(names)[:_NAMES_SHOWN])
+    return shown if len(names) <= _NAMES_SHOWN else f"{shown} and {len(names) - _NAMES_SHOWN} more"
+
+
 def _json_object(path: Path, field: str) -> dict[str, Any]:
-    text = read_config_file(path, field=field)
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ROSConfigError(f"{path} is not valid JSON: {exc}", field=field) from exc
+    data = load_json_file(path, field=field)
     if not isinstance(data, dict):
         raise ROSConfigError(f"{path} does not hold a JSON object", field=field)
     return data
@@ -176,4 +219,13 @@ def _positive(config: dict[str, Any], key: str, path: Path, field: str, *, defau
     return value
 
 
-__all__ = ["ACTION", "ENVIRONMENT_STATE", "IMAGE_PREFIX", "REQUIRED_FILES", "STATE", "Checkpoint", "Feature"]
+__all__ = [
+    "ACTION",
+    "ENVIRONMENT_STATE",
+    "IMAGE_PREFIX",
+    "REQUIRED_FILES",
+    "STATE",
+    "Checkpoint",
+    "Feature",
+    "weights_mismatch",
+]

@@ -90,9 +90,31 @@ class ObservationMap:
                     f"(it supplies {STATE}, {ENVIRONMENT_STATE} and {IMAGE_PREFIX}<camera>)",
                     field=_FIELD,
                 )
-        if not units.identity and self.state is not None and self.state.shape[0] != len(robot.joints):
+        if not units.identity:  # converted joint by joint: only a robot's joints can be
+            self._check_state_size()
+
+    def check_robot(self) -> None:
+        """Refuse, on a robot, what only a simulator's world state gives.
+
+        On a robot the state is the measured joints, one value each; a simulator's state vector
+        (velocities, object poses) and its ``environment_state`` exist only there.
+
+        Raises:
+            ROSConfigError: A state of another size than the robot's joints, or an environment state.
+        """
+        self._check_state_size()
+        if self.environment_state is not None:
             raise ROSConfigError(
-                f"{STATE} has {self.state.shape[0]} values but robot '{robot.robot_id}' has {len(robot.joints)} joints",
+                f"the policy reads {ENVIRONMENT_STATE}, which only a simulator gives",
+                field=_FIELD,
+                hint="run it in simulation, or train a policy on what the robot measures",
+            )
+
+    def _check_state_size(self) -> None:
+        if self.state is not None and self.state.shape[0] != len(self.robot.joints):
+            raise ROSConfigError(
+                f"{STATE} has {self.state.shape[0]} values but robot '{self.robot.robot_id}' has "
+                f"{len(self.robot.joints)} joints",
                 field=_FIELD,
             )
 

@@ -6,7 +6,9 @@ the policy runs exactly as ``lerobot-eval`` would run it. openral changes three 
 for running offline and on the device asked for: the hub is never contacted
 (``HF_HUB_OFFLINE``), the ImageNet backbone download that ACT and Diffusion configurations
 trigger is turned off (the checkpoint's own weights replace it anyway), and the processors' device
-is the one the deployment names rather than the one the checkpoint was trained on.
+is the one the deployment names rather than the one the checkpoint was trained on. And the weights
+load strictly: a ``model.safetensors`` that lacks some of the policy's tensors, or holds others, is
+refused, never run with the rest at its random initialisation.
 """
 
 from __future__ import annotations
@@ -17,12 +19,12 @@ import sys
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # before huggingface_hub is imported: never reach for the hub
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
 from openral_core import ROSConfigError, ROSDependencyMissing
-from openral_rskill.lerobot.checkpoint import STATE, Checkpoint
+from openral_rskill.lerobot.checkpoint import STATE, Checkpoint, weights_mismatch
 
 try:
     import torch
@@ -40,6 +42,8 @@ except ImportError as exc:
     ) from exc
 
 _FIELD = "params.path"
+DRAWS_NOTHING: Final = frozenset({"act"})
+"""Policies that draw no random number at inference (ACT's latent is zero outside training): seeds change nothing."""
 
 
 def resolve_device(asked: str) -> str:
@@ -80,11 +84,13 @@ class LoadedPolicy:
             torch.set_num_threads(threads)
         path = checkpoint.path
         try:
+            checkpoint.check_type(PreTrainedConfig.get_known_choices())
             config = PreTrainedConfig.from_pretrained(path)
             if getattr(config, "pretrained_backbone_weights", None):
                 config.pretrained_backbone_weights = None  # ImageNet weights, overwritten by the checkpoint's
             config.device = self.device
-            self.policy: Any = get_policy_class(config.type).from_pretrained(path, config=config)
+            # strict: LeRobot's default leaves what model.safetensors lacks at its random initialisation
+            self.policy: Any = get_policy_class(config.type).from_pretrained(path, config=config, strict=True)
             self.pre, self.post = make_pre_post_processors(
                 self.policy.config,
                 pretrained_path=str(path),
@@ -94,8 +100,12 @@ class LoadedPolicy:
         except ROSConfigError:
             raise
         except Exception as exc:  # LeRobot and draccus raise their own types for a checkpoint they cannot read
-            raise ROSConfigError(f"LeRobot cannot load {path}: {type(exc).__name__}: {exc}", field=_FIELD) from exc
+            raise weights_mismatch(checkpoint, exc) or ROSConfigError(
+                f"LeRobot cannot load {path}: {type(exc).__name__}: {exc}", field=_FIELD
+            ) from exc
         self.policy.eval()
+        self._draws_nothing = checkpoint.policy_type in DRAWS_NOTHING
+        self._noise_shape = _noise_shape(self.policy.config)
 
     def state_bound(self) -> float | None:
         """The largest magnitude ``observation.state`` had in training (from the saved statistics), if known."""
@@ -112,34 +122,65 @@ class LoadedPolicy:
         return None
 
     def reset(self, seed: int | None) -> None:
-        """A new episode: the policy's queues emptied, and its sampling seeded when a seed is given."""
+        """A new episode: the policy's queues emptied, and the process's generator seeded when a seed is given.
+
+        A chunk's sampling is seeded per request (:meth:`chunks`); this seeds a single-step policy's.
+        """
         self.policy.reset()
         if seed is not None:
             torch.manual_seed(seed)
 
-    def chunk(self, observations: Sequence[dict[str, np.ndarray]], task: str) -> np.ndarray:
+    def chunk(self, observations: Sequence[dict[str, np.ndarray]], task: str, seed: int | None = None) -> np.ndarray:
         """``(rows, action_dim)`` of the policy's next chunk, in its own units, for the observations (oldest first).
 
         One observation: LeRobot's preprocessor batches it. Several (a policy reading
         ``n_obs_steps``): each is preprocessed, then they are stacked on the time axis the policy
-        expects, and its queues are emptied first so the stack is what it reads.
+        expects, and its queues are emptied first so the stack is what it reads. ``seed``: the
+        seed its sampling draws from (``None``: the process's generator as it stands).
         """
-        return self.chunks([observations], [task])[0]
+        return self.chunks([observations], [task], [seed])[0]
 
-    def chunks(self, requests: Sequence[Sequence[dict[str, np.ndarray]]], tasks: Sequence[str]) -> list[np.ndarray]:
+    def chunks(
+        self,
+        requests: Sequence[Sequence[dict[str, np.ndarray]]],
+        tasks: Sequence[str],
+        seeds: Sequence[int | None] | None = None,
+    ) -> list[np.ndarray]:
         """The chunks of several requests (each its observations, oldest first) in one forward pass.
 
         Each request is preprocessed alone, exactly as :meth:`chunk` does, then the requests are
         concatenated on the batch axis: batched rows equal unbatched ones up to the kernels' float
-        rounding.
+        rounding. A request's ``seeds`` entry makes its sampling its own: Diffusion's noise is
+        drawn per request from its seed and handed in; a policy whose noise cannot be handed in
+        runs each seeded request alone, the process's generator seeded for it.
         """
+        drawn = [None] * len(requests) if seeds is None or self._draws_nothing else list(seeds)
+        if len(requests) > 1 and self._noise_shape is None and any(seed is not None for seed in drawn):
+            alone = zip(requests, tasks, drawn, strict=True)
+            return [self.chunks([one], [task], [seed])[0] for one, task, seed in alone]
         with torch.inference_mode():
             batches = [self._batch(observations, task) for observations, task in zip(requests, tasks, strict=True)]
             batch = batches[0] if len(batches) == 1 else _concatenate(batches)
-            actions = self.post(self.policy.predict_action_chunk(batch))
+            if self._noise_shape is not None and any(seed is not None for seed in drawn):
+                actions = self.policy.predict_action_chunk(batch, noise=self._noise(drawn))
+            else:
+                if drawn[0] is not None:
+                    torch.manual_seed(drawn[0])
+                actions = self.policy.predict_action_chunk(batch)
+            actions = self.post(actions)
             self._synchronize()
         rows = actions.detach().to("cpu", torch.float64).numpy()
         return [np.asarray(rows[i]) for i in range(len(batches))]
+
+    def _noise(self, seeds: Sequence[int | None]) -> Any:
+        """``(requests, *noise_shape)``: each request's noise from its own seed, drawn on the CPU (so on any device)."""
+        assert self._noise_shape is not None
+        rows = [
+            torch.randn(self._noise_shape, generator=None if seed is None else torch.Generator().manual_seed(seed))
+            for seed in seeds
+        ]
+        parameter = next(self.policy.parameters())
+        return torch.stack(rows).to(device=parameter.device, dtype=parameter.dtype)
 
     def _batch(self, observations: Sequence[dict[str, np.ndarray]], task: str) -> dict[str, Any]:
         """One request as the policy reads it: a batch of one, with a time axis when it reads several steps."""
@@ -181,6 +222,13 @@ def _concatenate(batches: Sequence[dict[str, Any]]) -> dict[str, Any]:
         else:
             joined[key] = first
     return joined
+
+
+def _noise_shape(config: Any) -> tuple[int, ...] | None:
+    """The shape of one request's noise where ``predict_action_chunk`` takes it (Diffusion's), else ``None``."""
+    if getattr(config, "type", None) == "diffusion":
+        return (int(config.horizon), int(config.action_feature.shape[0]))
+    return None
 
 
 def _numbers(value: Any) -> np.ndarray:
