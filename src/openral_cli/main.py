@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import importlib
 import logging
-import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -18,6 +17,8 @@ from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, 
 from openral_cli.controls import run_controls
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, exit_codes
 from openral_cli.keys import KeyCommand, KeyReader
+from openral_cli.mujoco_gl import check_mujoco_gl
+from openral_cli.options import Seconds
 from openral_cli.record import record
 from openral_cli.recording import (
     MCAP_OPTION,
@@ -47,6 +48,7 @@ from openral_core import (
     StopReason,
 )
 from openral_core.schema import FILE_MODELS, schema_json
+from openral_dataset.highlight import MAX_HIGHLIGHT_S
 from openral_hal.manifests import load_robot_manifest
 from openral_observability import semconv
 from openral_observability.logs import OTelLogBridge, add_trace_ids
@@ -74,21 +76,6 @@ class Recording:
     vcodec: str
     episode_every_s: float | None = None
     highlight_s: float | None = None
-
-
-class Seconds(click.ParamType):  # type: ignore[type-arg]
-    """A positive, finite number of seconds (``nan`` and ``inf`` are refused)."""
-
-    name = "seconds"
-
-    def convert(self, value: object, param: click.Parameter | None, ctx: click.Context | None) -> float:
-        try:
-            seconds = float(value)  # type: ignore[arg-type]
-        except (TypeError, ValueError):
-            self.fail(f"{value!r} is not a number of seconds", param, ctx)
-        if not (math.isfinite(seconds) and seconds > 0):
-            self.fail(f"{value!r} must be a positive, finite number of seconds", param, ctx)
-        return seconds
 
 
 class _Stderr:
@@ -128,6 +115,8 @@ def cli(ctx: click.Context, debug: bool) -> None:
     """openral: run a robot skill at a steady rate, safely, with every tick traced."""
     ctx.obj = {"debug": debug}
     _configure_logging(debug)
+    with exit_codes(debug):  # the environment, resolved here once for every command
+        check_mujoco_gl()
 
 
 @cli.command()
@@ -189,10 +178,10 @@ def cli(ctx: click.Context, debug: bool) -> None:
 )
 @click.option(
     "--highlight-s",
-    type=Seconds(),
+    type=Seconds(maximum=MAX_HIGHLIGHT_S),
     default=None,
     help="With --dataset-out: keep the last S seconds in memory; the s key or the console's button saves them "
-    "as one episode (nothing else is written).",
+    f"as one episode (nothing else is written). At most {MAX_HIGHLIGHT_S:g} s.",
 )
 @click.pass_context
 def deploy(
@@ -389,9 +378,7 @@ def schema(output: Path | None, kind: str) -> None:
     help="Calibration file to write (.json, or YAML for any other suffix).",
 )
 @click.option("--baudrate", type=click.IntRange(min=1), default=1_000_000, show_default=True)
-@click.option(
-    "--record-s", type=click.FloatRange(min=1), default=15.0, show_default=True, help="Seconds to record the ranges."
-)
+@click.option("--record-s", type=Seconds(1.0), default=15.0, show_default=True, help="Seconds to record the ranges.")
 @click.option("--invert", multiple=True, metavar="JOINT", help="A joint whose servo turns backwards (repeatable).")
 @click.pass_context
 def calibrate(

@@ -24,6 +24,7 @@ from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, 
 from openral_cli.controls import RunControls, run_controls, takeover_keys
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.keys import KeyCommand, KeyReader
+from openral_cli.options import Seconds
 from openral_cli.recording import (
     MCAP_OPTION,
     VCODEC_OPTION,
@@ -88,10 +89,10 @@ class _Totals:
 @click.option("--config", "config_path", required=True, type=click.Path(path_type=Path), help="Deployment file.")
 @click.option("--dataset-out", required=True, type=click.Path(path_type=Path, file_okay=False), help="Dataset folder.")
 @click.option("--episodes", type=click.IntRange(min=1), default=1, show_default=True, help="Episodes to record.")
-@click.option("--episode-time-s", type=click.FloatRange(min=0, min_open=True), default=20.0, show_default=True)
+@click.option("--episode-time-s", type=Seconds(), default=20.0, show_default=True, help="Length of each episode.")
 @click.option(
     "--reset-time-s",
-    type=click.FloatRange(min=0),
+    type=Seconds(zero_ok=True),
     default=5.0,
     show_default=True,
     help="Pause between episodes: the robot holds, nothing is recorded.",

@@ -224,7 +224,13 @@ def benchmark() -> None:
 
 @benchmark.command("run")
 @click.option("--config", "config_path", required=True, type=click.Path(path_type=Path), help="Suite file.")
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Processes here.")
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Processes here (at most the largest row's episodes and the CPUs this process may use).",
+)
 @click.option("--ray", "ray_address", default=None, help="Run on Ray: 'auto', 'local' or a cluster address.")
 @click.option(
     "--min-success",
@@ -304,36 +310,32 @@ def benchmark_run(
     evaluation = importlib.import_module("openral_sim.evaluation")
     code = EXIT_OK
     with exit_codes(bool(ctx.obj["debug"])):
+        # Paths the reports cannot be written to, and a missing matplotlib, fail now, not after the run.
+        report_files = importlib.import_module("openral_sim.report_files")
+        if out is not None:
+            report_files.check_output_file(out, option="--out", example_name="report.json")
         html_report: Any = None
-        if html_path is not None:  # a missing matplotlib or an unwritable path fails now, not after the run
+        if html_path is not None:
             html_report = importlib.import_module("openral_sim.html_report")
             html_report.check_writable(html_path)
         suite = BenchmarkSuite.from_yaml(config_path)
         baseline = _load_baseline(baseline_path) if baseline_path is not None else None
         hasher = hashlib.sha256(config_path.read_bytes())
+        rows = _load_rows(suite, config_path, hasher, render_all=video_dir is not None)
+        processes = workers if ray_address is not None else _worker_processes(workers, rows, evaluation)
         results: list[dict[str, Any]] = []
         failed = []
         error: BaseException | None = None
         not_run: list[str] = []
         with (
             _stdout_to_stderr(as_json),
-            evaluation.Evaluator(workers=workers, ray_address=ray_address) as evaluator,
+            evaluation.Evaluator(workers=processes, ray_address=ray_address) as evaluator,
         ):
-
-            def warm_up(run: BenchmarkRun, scene: SimEnvironment) -> None:
+            if not serve:  # served, a worker's skill is a client of a server that is not up yet
                 # The workers start (and build the first row's scene) while this process checks the rows.
-                if not serve:  # served, a worker's skill is a client of a server that is not up yet
-                    evaluator.warm_up(evaluation.EpisodeUnit(scene, run.skill, dict(run.skill_params)))
-
-            rows = _resolve_rows(
-                suite,
-                config_path,
-                build,
-                hasher,
-                render_all=video_dir is not None,
-                on_ray=ray_address is not None,
-                warm_up=warm_up,
-            )
+                first, first_scene = rows[0]
+                evaluator.warm_up(evaluation.EpisodeUnit(first_scene, first.skill, dict(first.skill_params)))
+            _check_rows(rows, build, on_ray=ray_address is not None)
             references = _references(baseline, rows) if baseline is not None else {}
             evaluator.wait_warm()
             startup_s = time.perf_counter() - started
@@ -384,11 +386,11 @@ def benchmark_run(
             "results": results,
             "startup_s": startup_s,
             "wall_s": time.perf_counter() - started,
-            "provenance": _provenance(hasher.hexdigest(), workers, ray_address),
+            "provenance": _provenance(hasher.hexdigest(), processes, ray_address, requested=workers),
         }
         if serve:
             # null: one per process of the Ray cluster
-            batch = serve_max_batch or (workers if ray_address is None else None)
+            batch = serve_max_batch or (processes if ray_address is None else None)
             document["provenance"]["served"] = {"max_batch": batch, "gpus": serve_gpus}
         if baseline_path is not None:
             document["provenance"]["baseline"] = str(baseline_path)
@@ -396,13 +398,13 @@ def benchmark_run(
             document["not_run"] = not_run
         text = json.dumps(document, indent=2)
         if out is not None:
-            out.write_text(text + "\n", encoding="utf-8")
+            report_files.write_whole(out, text + "\n", what="the JSON report")
         if html_report is not None:
             html_report.write(document, html_path)
         if as_json:
             click.echo(text)
         else:
-            click.echo(_markdown_table(results, workers if ray_address is None else None))
+            click.echo(_markdown_table(results, processes if ray_address is None else None))
         if error is not None:
             raise error
         if failed:
@@ -411,42 +413,58 @@ def benchmark_run(
     raise SystemExit(code)
 
 
-def _resolve_rows(
-    suite: BenchmarkSuite,
-    config_path: Path,
-    build: Any,
-    hasher: Any,
-    *,
-    render_all: bool,
-    on_ray: bool,
-    warm_up: Callable[[BenchmarkRun, SimEnvironment], None] | None = None,
+def _load_rows(
+    suite: BenchmarkSuite, config_path: Path, hasher: Any, *, render_all: bool
 ) -> list[tuple[BenchmarkRun, SimEnvironment]]:
-    """Every row's scene, with its environment and skill built once (and let go) before any episode runs.
-
-    On Ray the simulators may live only on the cluster: without them here, the names are checked.
-    ``warm_up`` hears the first row's scene as soon as it is read, before any check.
+    """Every row with its scene, read from the scene files (nothing is built); the files go into ``hasher``.
 
     Raises:
-        ROSConfigError: Naming the row's field (``runs[1].skill``, ``runs[0].scene``).
+        ROSConfigError: Naming the row's field (``runs[0].scene``).
     """
     rows = []
-    specs: dict[str, Any] = {}
     for index, run in enumerate(suite.runs):
         field = f"runs[{index}].scene"
         scene_path = resolve_user_path(run.scene, config_path.parent, field=field)
         scene = _scene(load_model_yaml(SimEnvironment, scene_path, field=field), run.n_episodes, run.seed)
         if not run.render_cameras and not render_all:
             scene = scene.model_copy(update={"cameras": []})
-        if index == 0 and warm_up is not None:
-            warm_up(run, scene)
+        hasher.update(scene_path.read_bytes())
+        rows.append((run, scene))
+    return rows
+
+
+def _check_rows(rows: list[tuple[BenchmarkRun, SimEnvironment]], build: Any, *, on_ray: bool) -> None:
+    """Every row's environment and skill built once (and let go) before any episode runs.
+
+    On Ray the simulators may live only on the cluster: without them here, the names are checked.
+
+    Raises:
+        ROSConfigError: Naming the row's field (``runs[1].skill``).
+    """
+    specs: dict[str, Any] = {}
+    for index, (run, scene) in enumerate(rows):
         key = scene.model_dump_json(exclude={"name", "n_episodes", "seed"})
         fields = build.SkillFields.of_row(index)
         specs[key] = build.check_evaluation(
             scene, run.skill, run.skill_params, fields=fields, spec=specs.get(key), simulator_elsewhere=on_ray
         )
-        hasher.update(scene_path.read_bytes())
-        rows.append((run, scene))
-    return rows
+
+
+def _worker_processes(requested: int, rows: list[tuple[BenchmarkRun, SimEnvironment]], evaluation: Any) -> int:
+    """The worker processes to start: no more than the largest row has episodes, nor the CPUs here run at once.
+
+    An episode is the smallest unit a process takes, so more processes than that would idle; more
+    than the CPUs would only share them. Fewer than asked for is said on stderr.
+    """
+    most = max(scene.n_episodes for _, scene in rows)
+    processes = evaluation.worker_processes(requested, most)
+    if processes < requested:
+        click.echo(
+            f"--workers {requested}: starting {processes} worker processes "
+            f"({evaluation.usable_cpus()} CPUs usable here, at most {most} episodes in a row)",
+            err=True,
+        )
+    return int(processes)
 
 
 def _load_baseline(path: Path) -> list[dict[str, Any]]:
@@ -554,7 +572,8 @@ def _markdown_table(rows: list[dict[str, Any]], workers: int | None) -> str:
     return "\n".join(lines)
 
 
-def _provenance(config_hash: str, workers: int, ray_address: str | None) -> dict[str, Any]:
+def _provenance(config_hash: str, workers: int, ray_address: str | None, *, requested: int) -> dict[str, Any]:
+    """Where and how the suite ran: packages, machine, revision, the suite's hash, processes started and asked for."""
     versions: dict[str, str | None] = {}
     for name in _PROVENANCE_PACKAGES:
         try:
@@ -568,6 +587,7 @@ def _provenance(config_hash: str, workers: int, ray_address: str | None) -> dict
         "git_revision": _git_revision(),
         "config_sha256": config_hash,
         "workers": workers,
+        "workers_requested": requested,
         "ray": ray_address,
     }
 

@@ -24,7 +24,7 @@ from typing import IO, Any
 from openral_console.auth import TOKEN_PARAM, is_loopback, new_token
 from openral_console.feed import ConsoleFeed
 from openral_console.params import ConsoleParams
-from openral_console.server import ConsoleServer
+from openral_console.server import ConsoleServer, check_installed
 from openral_core import TickResult, WorldState
 from openral_core.config import validate_model
 from openral_observability.observer import Thumbnail, TickObserver
@@ -69,9 +69,13 @@ class ConsoleObserver(TickObserver):
     ) -> ConsoleObserver:
         """Plugin constructor (observer ``console``); ``params`` are validated as :class:`ConsoleParams`.
 
+        Opens nothing, but checks what :meth:`start` needs, so ``openral validate`` refuses what the run would.
+
         Raises:
             ROSConfigError: A wrong parameter (named with the allowed keys).
+            ROSDependencyMissing: aiohttp is not installed (the ``console`` extra).
         """
+        check_installed()
         field = option or "observers[].params"
         config = validate_model(ConsoleParams, dict(params), field_prefix=field)
         return cls(config, option=field)

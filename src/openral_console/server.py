@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
 import json
 import socket
 import threading
@@ -37,10 +38,28 @@ from openral_console.params import ConsoleParams
 from openral_core import ROSConfigError, ROSDependencyMissing
 from openral_observability.observer import Thumbnail
 
+
+def _missing() -> ROSDependencyMissing:
+    return ROSDependencyMissing("aiohttp", extra="console", needed_for="the web console (--console)")
+
+
 try:
     from aiohttp import WSMsgType, web
 except ImportError as exc:  # pragma: no cover - exercised with the extra missing
-    raise ROSDependencyMissing("aiohttp", extra="console", needed_for="the web console (--console)") from exc
+    raise _missing() from exc
+
+
+def check_installed() -> None:
+    """Refuse now what :meth:`ConsoleServer.start` would: a console built without aiohttp names the extra.
+
+    Raises:
+        ROSDependencyMissing: aiohttp cannot be imported (the ``console`` extra).
+    """
+    try:
+        importlib.import_module("aiohttp")
+    except ImportError as exc:
+        raise _missing() from exc
+
 
 _log = structlog.get_logger(__name__)
 
@@ -260,12 +279,19 @@ class ConsoleServer:
         sender = asyncio.create_task(self._send(page))
         try:
             async for message in ws:
+                if message.type is WSMsgType.ERROR:  # too long or not a WebSocket frame: aiohttp closes the socket
+                    _log.info(
+                        "console page closed: it sent what the console does not take",
+                        peer=request.remote,
+                        reason=str(message.data),
+                    )
+                    break
                 if message.type is WSMsgType.TEXT:
                     reply = await self._on_text(message.data, peer=request.remote)
                 else:
                     reply = {"type": "error", "error": "send JSON text messages"}
-                async with page.lock:
-                    await ws.send_str(dumps(reply))
+                if not await _reply(page, reply):
+                    break
         finally:
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError, ConnectionError):
@@ -378,8 +404,28 @@ class ConsoleServer:
                     await page.ws.send_bytes(data)
 
 
+async def _reply(page: _Page, reply: dict[str, Any]) -> bool:
+    """Send ``reply`` to ``page``; ``False`` when its socket is closing (the page went away: nothing to tell)."""
+    async with page.lock:
+        if page.ws.closed:
+            return False
+        try:
+            await page.ws.send_str(dumps(reply))
+        except ConnectionError:
+            return False
+    return True
+
+
 def _json_object(text: str) -> dict[str, Any]:
-    value = json.loads(text)
+    """The JSON object ``text`` holds.
+
+    Raises:
+        ValueError: Not JSON (nested too deeply included), or not an object.
+    """
+    try:
+        value = json.loads(text)
+    except RecursionError:  # a few thousand brackets fit in a message
+        raise ValueError("nested too deeply") from None
     if not isinstance(value, dict):
         raise ValueError(f"got {type(value).__name__}")
     return value

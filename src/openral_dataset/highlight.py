@@ -40,6 +40,10 @@ from openral_core import FrameEncoding, ROSRuntimeError, SensorFrame
 JPEG_QUALITY: Final = 95
 """JPEG quality of held frames: far below the video codec's own loss (AV1 at CRF 30, H.264 at CRF 23)."""
 
+MAX_HIGHLIGHT_S: Final = 600.0
+"""The longest highlight a ring holds: ten minutes, at 30 fps 18 000 rows, a few GB of JPEG frames for two
+640x480 cameras (30 s take 100-300 MB); longer is a continuous recording's job (``episode_every_s``)."""
+
 _COLOUR: Final = frozenset({FrameEncoding.RGB8, FrameEncoding.BGR8, FrameEncoding.RGBA8, FrameEncoding.BGRA8})
 
 

@@ -60,7 +60,7 @@ from openral_core.config import validate_model
 from openral_core.config_files import resolve_user_path
 from openral_dataset import schema
 from openral_dataset.episode import EpisodeSummary
-from openral_dataset.highlight import Highlight, HighlightRing
+from openral_dataset.highlight import MAX_HIGHLIGHT_S, Highlight, HighlightRing
 from openral_dataset.video import OverflowPolicy
 from openral_dataset.writer import LeRobotDatasetSink
 from openral_observability import metrics, semconv
@@ -90,8 +90,10 @@ class LeRobotDatasetParams(BaseModel):
     highlight_s: float | None = Field(
         default=None,
         gt=0,
+        le=MAX_HIGHLIGHT_S,
         allow_inf_nan=False,
-        description="Write nothing but hold the last this many seconds in memory, saved on save_highlight().",
+        description="Write nothing but hold the last this many seconds in memory, saved on save_highlight() "
+        f"(at most {MAX_HIGHLIGHT_S:g}: the ring is held in memory).",
     )
 
     @model_validator(mode="after")
@@ -120,12 +122,13 @@ class RolloutRecorder(QueuedObserver):
             state names); the action's order is the sink's.
         max_queue: Ticks held for the worker before the oldest is dropped (and counted).
         episode_every_s: Continuous recording: commit a part every this many seconds of rows.
-        highlight_s: Highlights: hold the last this many seconds; write only what
-            :meth:`save_highlight` asks for.
+        highlight_s: Highlights: hold the last this many seconds (at most :data:`MAX_HIGHLIGHT_S`);
+            write only what :meth:`save_highlight` asks for.
 
     Raises:
         ROSConfigError: ``episode_every_s`` or ``highlight_s`` not a positive, finite number of
-            seconds or shorter than one frame, or both given.
+            seconds or shorter than one frame, ``highlight_s`` longer than :data:`MAX_HIGHLIGHT_S`,
+            or both given.
     """
 
     def __init__(
@@ -148,7 +151,7 @@ class RolloutRecorder(QueuedObserver):
         self.highlight: HighlightRing | None = None
         """The rows held for a highlight (``None`` unless ``highlight_s`` was given)."""
         self._saver: ThreadPoolExecutor | None = None
-        highlight_rows = _rows(highlight_s, sink.fps, "highlight_s")
+        highlight_rows = _rows(highlight_s, sink.fps, "highlight_s", maximum=MAX_HIGHLIGHT_S)
         if highlight_rows is not None:
             self.highlight = HighlightRing(highlight_rows)
             self._saver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="openral-highlight")
@@ -174,7 +177,7 @@ class RolloutRecorder(QueuedObserver):
         self._ends_queued = 0
         self._ends_done = 0
         # Closing waits for the highlights asked for: each may take a few times its length to write.
-        close_timeout_s = 30.0 + (MAX_PENDING_SAVES * 3 * highlight_s if highlight_s is not None else 0.0)
+        close_timeout_s = _wait_s(30.0 + (MAX_PENDING_SAVES * 3 * highlight_s if highlight_s is not None else 0.0))
         self._tick_columns = schema.tick_columns(takeover=sink.takeover)
         self._mirrored = {tick_column.tick_field for tick_column in self._tick_columns}
         super().__init__(name="openral-recorder", max_queue=max_queue, close_timeout_s=close_timeout_s)
@@ -261,7 +264,7 @@ class RolloutRecorder(QueuedObserver):
         """
         with self._ends:
             return self._ends.wait_for(
-                lambda: self._ends_done >= self._ends_queued or self.failure is not None, timeout_s
+                lambda: self._ends_done >= self._ends_queued or self.failure is not None, _wait_s(timeout_s)
             )
 
     def save_highlight(self) -> Future[EpisodeSummary | None]:
@@ -549,20 +552,27 @@ class RolloutRecorder(QueuedObserver):
         return self._state
 
 
-def _rows(seconds: float | None, fps: int, field: str) -> int | None:
+def _rows(seconds: float | None, fps: int, field: str, *, maximum: float | None = None) -> int | None:
     """``seconds`` of rows at ``fps`` (``None`` stays ``None``).
 
     Raises:
-        ROSConfigError: Not a positive, finite number, or shorter than one frame.
+        ROSConfigError: Not a positive, finite number, more than ``maximum``, or shorter than one frame.
     """
     if seconds is None:
         return None
     if not (math.isfinite(seconds) and seconds > 0):
         raise ROSConfigError(f"must be a positive, finite number of seconds, got {seconds}", field=field)
+    if maximum is not None and seconds > maximum:
+        raise ROSConfigError(f"must be at most {maximum:g} s (it is held in memory), got {seconds:g}", field=field)
     rows = round(seconds * fps)
     if rows < 1:
         raise ROSConfigError(f"{seconds:g} s is shorter than one frame at {fps} fps", field=field)
     return rows
+
+
+def _wait_s(seconds: float) -> float:
+    """``seconds`` as a thread wait takes it: at most ``threading.TIMEOUT_MAX`` (a longer one raises)."""
+    return min(seconds, threading.TIMEOUT_MAX)
 
 
 def _ids(traceparent: str | None) -> tuple[str | None, str | None]:

@@ -100,6 +100,23 @@ def schedule_episodes(
     return units
 
 
+def usable_cpus() -> int:
+    """The CPUs this process may run on: its affinity mask where the system has one, else every CPU."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):  # no affinity masks on this system
+        return os.cpu_count() or 1
+
+
+def worker_processes(requested: int, units: int) -> int:
+    """How many of ``requested`` worker processes to start for at most ``units`` units of work.
+
+    No more than there are units (a process without one only costs its start-up) nor than
+    :func:`usable_cpus` (more would share the CPUs and slow each other down); at least one.
+    """
+    return max(1, min(requested, units, usable_cpus()))
+
+
 def run_unit(unit: EpisodeUnit) -> EpisodeBatch:
     """Run one unit (in whatever process or Ray worker calls this) on this process's kept env and skill.
 

@@ -11,13 +11,11 @@ from __future__ import annotations
 
 import html
 import json
-import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from openral_core import ROSConfigError, ROSRuntimeError
-from openral_sim import html_figures
+from openral_sim import html_figures, report_files
 
 Document = Mapping[str, Any]
 
@@ -47,20 +45,9 @@ def check_writable(path: Path, *, option: str = "--html") -> None:
     """Fail now, before a benchmark runs for minutes, if the page could not be written to ``path``.
 
     Raises:
-        ROSConfigError: ``path`` is a folder, its folder is missing or not a folder, or it cannot be written.
+        ROSConfigError: As :func:`openral_sim.report_files.check_output_file`.
     """
-    folder = path.parent
-    if path.is_dir():
-        problem, hint = f"{path} is a folder", f"give a file name, such as {path / 'report.html'}"
-    elif not folder.exists():
-        problem, hint = f"the folder {folder} does not exist", "create it first, or choose another path"
-    elif not folder.is_dir():
-        problem, hint = f"{folder} is not a folder", "choose another path"
-    elif not os.access(folder, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        problem, hint = f"cannot write {path}: permission denied", "choose a folder you can write to"
-    else:
-        return
-    raise ROSConfigError(problem, field=option, hint=hint)
+    report_files.check_output_file(path, option=option, example_name="report.html")
 
 
 def write(document: Document, path: Path) -> None:
@@ -69,18 +56,7 @@ def write(document: Document, path: Path) -> None:
     Raises:
         ROSRuntimeError: The page could not be written (the message names the path).
     """
-    text = render(document)
-    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    created = False
-    try:
-        with partial.open("x", encoding="utf-8") as file:  # "x": a file of ours, which alone may be removed
-            created = True
-            file.write(text)
-        partial.replace(path)
-    except OSError as exc:
-        if created:
-            partial.unlink(missing_ok=True)
-        raise ROSRuntimeError(f"cannot write the HTML report to {path}: {exc}") from exc
+    report_files.write_whole(path, render(document), what="the HTML report")
 
 
 def render(document: Document) -> str:

@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from click.testing import CliRunner
 
 from openral_cli.main import cli
 from openral_dataset.check import check_dataset
+from openral_sim import evaluation
 
 ROOT = Path(__file__).resolve().parents[2]
 MOCK_SCENE = ROOT / "scenes" / "sim" / "mock_reach.yaml"
@@ -262,3 +266,82 @@ def test_benchmark_refuses_to_serve_a_policy_of_one_row_per_request(tmp_path: Pa
     result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--serve"])
     assert result.exit_code != 0
     assert "cannot be served" in result.output
+
+
+def _special_file(path: Path, kind: str) -> str:
+    """Make ``path`` a FIFO, a null device node of its own or a link to a regular file; what the error calls it."""
+    if kind == "fifo":
+        os.mkfifo(path)
+        return "a FIFO (named pipe)"
+    if kind == "device":
+        try:
+            os.mknod(path, stat.S_IFCHR | 0o666, os.makedev(1, 3))  # a /dev/null of this test's own
+        except PermissionError:
+            pytest.skip("making a device node needs root")
+        return "a character device"
+    target = path.with_name("target.txt")
+    target.write_text("kept", encoding="utf-8")
+    path.symlink_to(target)
+    return "a symbolic link"
+
+
+@pytest.mark.parametrize(
+    ("option", "kind"),
+    [("--html", "fifo"), ("--html", "device"), ("--html", "link"), ("--out", "device"), ("--out", "link")],
+)
+def test_benchmark_refuses_a_report_path_that_is_not_a_regular_file_before_the_run(
+    tmp_path: Path, option: str, kind: str
+) -> None:
+    target = tmp_path / "report"
+    called = _special_file(target, kind)
+    before = os.lstat(target)
+    suite = _suite(tmp_path, f"{{scene: {MOCK_SCENE}, skill: zero, n_episodes: 1}}")
+    result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), option, str(target)])
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1, result.output  # refused before any row ran
+    assert lines[0].startswith(f"error: {option}: {target} is {called}, not a regular file")
+    after = os.lstat(target)  # the same node, not a report renamed over it
+    assert (after.st_mode, after.st_ino, after.st_rdev) == (before.st_mode, before.st_ino, before.st_rdev)
+    if kind == "link":
+        assert (tmp_path / "target.txt").read_text(encoding="utf-8") == "kept"
+
+
+@pytest.mark.slow
+def test_benchmark_starts_no_more_workers_than_units_and_cpus_and_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    started: list[int] = []
+
+    class CountedPool(evaluation.ProcessPoolExecutor):
+        def __init__(self, max_workers: int, **kwargs: Any) -> None:
+            started.append(max_workers)
+            if max_workers > 8:  # uncapped: fail here instead of starting them all
+                raise AssertionError(f"a pool of {max_workers} processes")
+            super().__init__(max_workers, **kwargs)
+
+    monkeypatch.setattr(evaluation, "ProcessPoolExecutor", CountedPool)
+    monkeypatch.setattr(evaluation, "usable_cpus", lambda: 2)  # whatever this machine has
+    suite = _suite(
+        tmp_path,
+        f"{{scene: {MOCK_SCENE}, skill: zero, n_episodes: 3}}",
+        f"{{scene: {MOCK_SCENE}, skill: zero, n_episodes: 1, label: one}}",
+    )
+    out = tmp_path / "bench.json"
+    args = ["benchmark", "run", "--config", str(suite), "--workers", "1000", "--out", str(out)]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert started == [2]  # one pool for the whole suite, of min(units, CPUs) processes
+    notes = [line for line in result.output.splitlines() if line.startswith("--workers")]
+    assert notes == ["--workers 1000: starting 2 worker processes (2 CPUs usable here, at most 3 episodes in a row)"]
+    document = json.loads(out.read_text())
+    assert (document["provenance"]["workers"], document["provenance"]["workers_requested"]) == (2, 1000)
+    assert [row["n_episodes"] for row in document["results"]] == [3, 1]
+
+    # Fewer units than CPUs: as many processes as the largest row has episodes.
+    monkeypatch.setattr(evaluation, "usable_cpus", lambda: 64)
+    one_row = _suite(tmp_path, f"{{scene: {MOCK_SCENE}, skill: zero, n_episodes: 2}}")
+    result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(one_row), "--workers", "1000"])
+    assert result.exit_code == 0, result.output
+    assert started == [2, 2]
+    assert "starting 2 worker processes (64 CPUs usable here, at most 2 episodes in a row)" in result.output

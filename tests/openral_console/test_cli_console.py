@@ -105,6 +105,17 @@ def test_the_cli_loads_no_web_server_until_asked() -> None:
     assert proc.stdout.split() == ["False", "False"]
 
 
+def test_validate_names_the_console_extra_when_aiohttp_is_missing(tmp_path: Path, monkeypatch) -> None:
+    config = tmp_path / "console.yaml"
+    config.write_text(HELLO.read_text() + "observers:\n  - id: console\n    params: {port: 0}\n")
+    assert CliRunner().invoke(cli, ["validate", str(config)]).exit_code == 0
+    monkeypatch.setitem(sys.modules, "aiohttp", None)  # import aiohttp now fails, as on an install without it
+    result = CliRunner().invoke(cli, ["validate", str(config)])
+    assert result.exit_code == 2, result.output
+    assert "aiohttp" in result.output
+    assert "--extra console" in result.output
+
+
 def _get(url: str) -> dict[str, Any]:
     with urllib.request.urlopen(url, timeout=10) as response:
         result: dict[str, Any] = json.loads(response.read())

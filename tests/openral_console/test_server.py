@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import logging
 import socket
 import threading
 from collections.abc import Awaitable, Callable, Iterator
@@ -226,6 +227,54 @@ def test_buttons_run_their_actions_and_a_bad_request_gets_an_error_not_a_crash(c
     assert pressed == ["stop", "stop"]
     assert observer._server is not None
     assert observer._server.control_errors == 2
+
+
+async def _close_code(ws: aiohttp.ClientWebSocketResponse) -> int | None:
+    """Read until the server closes the socket; the close code it sent."""
+    while True:
+        message = await ws.receive(timeout=10)
+        if message.type is aiohttp.WSMsgType.CLOSE:
+            return int(message.data)
+        if message.type in (aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING, aiohttp.WSMsgType.ERROR):
+            return ws.close_code
+
+
+def test_garbage_from_a_page_gets_an_error_or_a_quiet_close_never_a_traceback(console, caplog, capfd) -> None:
+    observer = console()
+    pressed: list[int] = []
+    observer.register_control("stop", lambda: pressed.append(1))
+    server = observer._server
+    assert server is not None
+
+    async def press_stop(session: aiohttp.ClientSession, request_id: int) -> None:
+        async with session.ws_connect(base(observer) + "/ws") as ws:
+            await next_of(ws, "hello")
+            await ws.send_str(json.dumps({"type": "control", "name": "stop", "id": request_id}))
+            assert (await next_of(ws, "control_result"))["ok"] is True
+
+    async def body(session: aiohttp.ClientSession) -> None:
+        async with session.ws_connect(base(observer) + "/ws") as ws:
+            await next_of(ws, "hello")
+            await ws.send_str("[" * 3000)  # inside the size limit, deeper than the JSON parser goes
+            assert "nested too deeply" in (await next_of(ws, "error"))["error"]
+            await ws.send_str(json.dumps({"type": "control", "name": "stop", "id": 1}))  # the page goes on working
+            assert (await next_of(ws, "control_result"))["ok"] is True
+        async with session.ws_connect(base(observer) + "/ws") as ws:
+            await next_of(ws, "hello")
+            await ws.send_str("x" * 70_000)  # over the size limit: the console closes the socket
+            assert await _close_code(ws) == aiohttp.WSCloseCode.MESSAGE_TOO_BIG
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 10
+        while server._pages:  # both pages' handlers have returned (or raised)
+            assert loop.time() < deadline, "a page's handler did not finish"
+            await asyncio.sleep(0.01)
+        await press_stop(session, 2)  # a new page is served as before
+
+    run(body)
+    assert pressed == [1, 1]
+    errors = [r for r in caplog.records if r.exc_info or r.levelno >= logging.ERROR]
+    assert errors == [], [r.getMessage() for r in errors]
+    assert "Traceback" not in capfd.readouterr().err
 
 
 def test_a_non_loopback_bind_refuses_everything_without_the_token(console) -> None:

@@ -24,7 +24,7 @@ from openral_core import (
 )
 from openral_dataset import layout, schema
 from openral_dataset.check import check_dataset
-from openral_dataset.highlight import HeldFrame, HighlightRing
+from openral_dataset.highlight import MAX_HIGHLIGHT_S, HeldFrame, HighlightRing
 from openral_dataset.recorder import RolloutRecorder
 from openral_dataset.testing import numbered_pixels, read_number
 from openral_dataset.video import StreamingVideoEncoder
@@ -294,7 +294,7 @@ def test_from_config_takes_highlight_s(tmp_path: Path) -> None:
         recorder.close()
 
 
-@pytest.mark.parametrize("value", [0, -1.0, float("inf"), float("nan"), "30"])
+@pytest.mark.parametrize("value", [0, -1.0, float("inf"), float("nan"), "30", MAX_HIGHLIGHT_S + 1, 1e9])
 def test_a_bad_highlight_s_names_the_field(tmp_path: Path, value: object) -> None:
     with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.highlight_s"):
         RolloutRecorder.from_config(
@@ -316,6 +316,21 @@ def test_highlights_and_continuous_recording_together_are_refused_naming_both(tm
         RolloutRecorder(sink, joint_names=JOINTS, highlight_s=0.01)
     assert short.value.field == "highlight_s"
     assert not (tmp_path / "ds").exists()
+
+
+def test_the_longest_highlight_closes_in_time_and_a_longer_one_is_refused(tmp_path: Path) -> None:
+    sink = LeRobotDatasetSink(tmp_path / "ds", fps=FPS, robot_type="arm", joint_names=JOINTS, defer_open=True)
+    with pytest.raises(ROSConfigError, match="at most 600 s") as long:
+        RolloutRecorder(sink, joint_names=JOINTS, highlight_s=1e9)
+    assert long.value.field == "highlight_s"
+    recorder = RolloutRecorder(sink, joint_names=JOINTS, highlight_s=MAX_HIGHLIGHT_S)
+    assert recorder.highlight is not None
+    assert recorder.highlight.capacity_rows == MAX_HIGHLIGHT_S * FPS
+    assert recorder.wait_for_commit(timeout_s=1e12)  # any wait is cut to what a thread wait takes
+    with capture_logs() as logs:
+        recorder.close()
+    assert [entry for entry in logs if entry["log_level"] in ("warning", "error")] == []
+    assert not recorder._thread.is_alive()  # its worker was joined
 
 
 def test_save_highlight_needs_highlight_mode(tmp_path: Path) -> None:

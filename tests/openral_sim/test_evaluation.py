@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 
@@ -20,7 +21,9 @@ from openral_sim.evaluation import (
     split_episodes,
     summarize,
     throughput,
+    usable_cpus,
     wilson_interval,
+    worker_processes,
 )
 
 SCENE = SimEnvironment(
@@ -189,3 +192,12 @@ def test_ray_gives_the_outcomes_of_one_process_and_reports_a_failing_skill() -> 
     message, ended_by = failure
     assert "grasp_pos" in message
     assert ended_by == ["faults"] * 4
+
+
+def test_worker_processes_are_capped_by_the_units_and_the_cpus_this_process_may_use() -> None:
+    cpus = usable_cpus()
+    assert cpus == len(os.sched_getaffinity(0))
+    assert worker_processes(1000, 3) == min(3, cpus)
+    assert worker_processes(1000, 10**6) == cpus
+    assert worker_processes(1, 10**6) == 1
+    assert worker_processes(4, 0) == 1  # at least one

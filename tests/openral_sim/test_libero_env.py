@@ -24,6 +24,8 @@ from openral_sim.skills.libero_expert import LiberoExpert, Phase
 ROOT = Path(__file__).resolve().parents[2]
 PNP_SCENE = ROOT / "scenes" / "sim" / "franka_libero_pnp.yaml"
 PNP_BDDL = ROOT / "scenes" / "sim" / "franka_libero_pnp.bddl"
+MILK_RANGE = "(-0.16 -0.28 -0.06 -0.18)"
+BASKET_INIT = "(On basket_1 floor_bin_region)"
 
 
 def pnp_scene(**overrides: object) -> SimEnvironment:
@@ -246,11 +248,22 @@ def test_a_bddl_path_that_is_no_text_file_is_refused_without_hanging(tmp_path: P
         (("(In milk_1 basket_1_contain_region)", "(In milk_1 basket_1_contains)"), 48, "unknown name"),
         (("(:goal", "(:goals"), 47, "unknown section"),
         (("LIBERO_Floor_Manipulation", "LIBERO_Floor"), 4, "unknown problem class"),
+        (("(And (In milk_1 basket_1_contain_region))", "(And)"), 48, "the goal is empty"),
+        ((MILK_RANGE, "(-0.06 -0.18 -0.16 -0.28)"), 14, "each minimum at most its maximum"),
+        ((MILK_RANGE, "(nan -0.28 -0.06 -0.18)"), 14, "four finite numbers"),
+        ((MILK_RANGE, "(-1e400 -0.28 -0.06 -0.18)"), 14, "four finite numbers"),
+        ((MILK_RANGE, "(1e11 -0.28 1.1e11 -0.18)"), 14, "beyond 100 m"),
+        (
+            (BASKET_INIT, f"{BASKET_INIT}\n    (On milk_1 floor_distractor_region_1)"),
+            46,
+            "'milk_1' is placed twice.*42",
+        ),
     ],
 )
 def test_a_malformed_bddl_file_is_refused_naming_file_and_line(
-    tmp_path: Path, edit: tuple[str, str], line: int, message: str
+    tmp_path: Path, edit: tuple[str, str], line: int, message: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.chdir(tmp_path)  # where MuJoCo would write its MUJOCO_LOG.TXT
     text = PNP_BDDL.read_text()
     assert edit[0] in text
     bad = tmp_path / "bad.bddl"
@@ -260,6 +273,7 @@ def test_a_malformed_bddl_file_is_refused_naming_file_and_line(
     assert info.value.field == "env_kwargs.bddl"
     assert f"{bad}:{line}:" in str(info.value)
     assert "\n" not in str(info.value)
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()  # refused before LIBERO or MuJoCo saw the file
 
 
 def test_expert_solves_the_custom_scene(pnp: LiberoEnv) -> None:

@@ -5,7 +5,9 @@ parenthesis without saying where, prints and skips an unknown section, and fails
 object category with a bare ``KeyError`` deep inside model loading. This module reads the file
 once into groups that remember their line, and refuses the first problem it finds as a
 ``ROSConfigError`` naming the file and the line: unbalanced parentheses, text after the problem,
-an unknown section, problem class, object category, predicate or name, a malformed region.
+an unknown section, problem class, object category, predicate or name, a malformed region (a
+range that is not four finite numbers in order, within :data:`MAX_RANGE_M`), an object placed
+twice in ``(:init ...)``, and an empty goal (which LIBERO counts as met at the first step).
 
 Pure Python: what LIBERO knows (problem classes, object categories, predicates) is passed in.
 """
@@ -13,6 +15,7 @@ Pure Python: what LIBERO knows (problem classes, object categories, predicates) 
 from __future__ import annotations
 
 import difflib
+import math
 import re
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
@@ -40,6 +43,13 @@ WORKSPACE_FIXTURES = ("floor", "table", "kitchen_table", "living_room_table", "s
 """Fixture categories the problem classes build themselves (not in LIBERO's object dictionary)."""
 
 REGION_ATTRIBUTES = (":target", ":ranges", ":yaw_rotation", ":rgba")
+
+MAX_RANGE_M = 100.0
+"""Largest coordinate of a region's range, in metres: LIBERO's own go to about 10 m, and far-off
+placements make MuJoCo's state blow up ("huge value in QPOS")."""
+
+PLACEMENTS = ("on", "in")
+"""The ``(:init ...)`` predicates that place their first argument."""
 
 _TOKEN = re.compile(r"[()]|[^\s()]+")
 
@@ -202,8 +212,18 @@ def check_bddl(
         for word in sections[":obj_of_interest"].words()[1:]:
             names.check(word)
     if ":init" in sections:
+        placed: dict[str, int] = {}
         for predicate in sections[":init"].groups():
-            names.predicate(predicate)
+            name, *arguments = names.predicate(predicate)
+            if name not in PLACEMENTS or not arguments:
+                continue
+            if arguments[0] in placed:
+                raise refuse(
+                    predicate.line,
+                    f"{arguments[0]!r} is placed twice: here and on line {placed[arguments[0]]}",
+                    hint="keep one (On ...) or (In ...) per object in (:init ...)",
+                )
+            placed[arguments[0]] = predicate.line
     goal = names.goal(sections.get(":goal"), root)
     language = " ".join(t.text for t in sections[":language"].words()[1:]) if ":language" in sections else ""
     return BddlProblem(problem, language, objects, fixtures, tuple(names.regions), goal)
@@ -288,12 +308,26 @@ class _Names:
                 target = words[1].text
             elif key == ":ranges":
                 for box in (box for ranges in attribute.groups() for box in ranges.groups()):
-                    values = box.words()
-                    if len(values) != 4 or not all(_is_number(v.text) for v in values):
-                        raise self.refuse(box.line, "a range is four numbers: (x_min y_min x_max y_max)")
+                    self._range(box)
         if target is None:
             raise self.refuse(region.line, f"region {name!r} has no (:target ...)")
         return target
+
+    def _range(self, box: Group) -> None:
+        """``(x_min y_min x_max y_max)``: finite, in order, within :data:`MAX_RANGE_M`."""
+        numbers = [value for value in (_number(item.text) for item in box.words()) if value is not None]
+        if len(numbers) != 4 or len(box.items) != 4:
+            raise self.refuse(box.line, "a range is four finite numbers: (x_min y_min x_max y_max)")
+        x_min, y_min, x_max, y_max = numbers
+        if max(abs(x_min), abs(y_min), abs(x_max), abs(y_max)) > MAX_RANGE_M:
+            raise self.refuse(box.line, f"a range reaches beyond {MAX_RANGE_M:g} m", hint="ranges are in metres")
+        if x_min > x_max or y_min > y_max:
+            raise self.refuse(
+                box.line,
+                "a range is (x_min y_min x_max y_max), each minimum at most its maximum",
+                hint=f"swap them: ({min(x_min, x_max):g} {min(y_min, y_max):g} "
+                f"{max(x_min, x_max):g} {max(y_min, y_max):g})",
+            )
 
     def check(self, word: Token) -> None:
         known = {*self.declared, *self.regions}
@@ -324,15 +358,23 @@ class _Names:
             return (self.predicate(body),)
         if len(body.words()) != 1:
             raise self.refuse(body.line, "(And ...) holds predicates only")
-        return tuple(self.predicate(part) for part in body.groups())
+        goal = tuple(self.predicate(part) for part in body.groups())
+        if not goal:
+            raise self.refuse(
+                body.line,
+                "the goal is empty: every episode would succeed at its first step",
+                hint="name what must hold, e.g. (And (In obj region))",
+            )
+        return goal
 
 
-def _is_number(text: str) -> bool:
+def _number(text: str) -> float | None:
+    """``text`` as a finite number, or ``None``."""
     try:
-        float(text)
+        value = float(text)
     except ValueError:
-        return False
-    return True
+        return None
+    return value if math.isfinite(value) else None
 
 
 def _closest(word: str, choices: Collection[str]) -> str:

@@ -8,11 +8,31 @@ Appsinks are driven through their action signals (``sink.emit("pull-sample")``),
 if the application wrapped an appsink before ``GstApp`` was loaded (``Gst.parse_launch`` and
 ``get_by_name`` are enough), every appsink of the process stays a ``GstAppSink`` without
 ``pull_sample``. Signals and properties work whatever the class, so the import order cannot matter.
+
+GStreamer links libunwind, whose ``_Unwind_*`` functions then serve the C++ libraries loaded
+after it. An exception raised through the system unwinder (libgcc_s, which libstdc++ had bound to
+when MuJoCo loaded it) and resumed through libunwind aborts the process: pyarrow reading a damaged
+dataset, or writing to a full disk, would end a recording with SIGABRT instead of an error. So
+libgcc_s is put in the global symbol scope first, and every library loaded later binds to it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import sys
+
 from openral_core import ROSConfigError, ROSDependencyMissing
+
+
+def _one_cxx_unwinder() -> None:
+    """Put libgcc_s, the C++ unwinder, in the global symbol scope ahead of GStreamer's libunwind (Linux)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError):  # no libgcc_s (a musl system): nothing to put first
+            ctypes.CDLL("libgcc_s.so.1", mode=ctypes.RTLD_GLOBAL)
+
+
+_one_cxx_unwinder()
 
 try:
     import gi
