@@ -238,7 +238,9 @@ def test_stale_required_sensor_withholds_every_affected_tick() -> None:
     )
     runner.activate()
     runner.run(3)
-    cam.age_ms = 400.0  # the camera froze
+    # The camera freezes once the next run has started on a fresh frame (a run never starts on a stale one).
+    ages = iter([1.0])
+    cam.on_read = lambda: setattr(cam, "age_ms", next(ages, 400.0))
     result = runner.run(3)
     assert result.withheld_actions == 3
     assert {t.withheld_reason for t in runner.recent_ticks} == {"stale_sensor"}

@@ -196,7 +196,9 @@ def test_deadline_miss_is_an_event_on_the_tick_and_a_counted_metric(telemetry: A
 def test_stale_sensor_is_an_event_on_its_read_span_and_a_counted_metric(telemetry: Any) -> None:
     clock = FakeClock()
     front = ScriptedReader("front", clock)
-    wrist = ScriptedReader("wrist-stale-test", clock, age_ms=500.0, max_age_ms=100.0)
+    wrist = ScriptedReader("wrist-stale-test", clock, max_age_ms=100.0)
+    ages = iter([1.0])  # fresh when the run starts (it waits for that), stale on every tick after
+    wrist.on_read = lambda: setattr(wrist, "age_ms", next(ages, 500.0))
     runner = build(clock, readers=[front, wrist])
     result = runner.run(3)
     assert result.stale_reads == 3
