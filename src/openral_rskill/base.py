@@ -81,6 +81,19 @@ class OfflineConfigCheck(Protocol):
 
 
 @runtime_checkable
+class OfflineObservation(Protocol):
+    """An :class:`OfflineConfigCheck` skill class that knows from its parameters alone what it reads.
+
+    ``openral validate`` checks the cameras among those fields against the deployment's sensors, as
+    it does for a skill it builds.
+    """
+
+    def offline_observation(self, params: Mapping[str, Any]) -> list[str]:
+        """The world-state fields it reads (as ``RSkillInfo.observation``) with ``params``; empty: not known offline."""
+        ...
+
+
+@runtime_checkable
 class RobotInputCheck(Protocol):
     """A skill that runs on a simulator's world state as well as a robot's, and can check the second before it runs.
 

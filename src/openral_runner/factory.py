@@ -26,7 +26,7 @@ from openral_core.plugins import (
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.protocol import HAL
 from openral_observability.observer import TickObserver
-from openral_rskill.base import OfflineConfigCheck, RobotInputCheck, RSkillBase
+from openral_rskill.base import OfflineConfigCheck, OfflineObservation, RobotInputCheck, RSkillBase
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.clock import Clock
 from openral_runner.envelope import EnvelopeSafetyClient
@@ -143,6 +143,8 @@ def check_deployment(env: RobotEnvironment, *, base_dir: Path | None = None) -> 
         _release(skill, runner.fallback_skill, runner.observers)
         return
     skill_cls.check_config(skill_params, robot=robot, rate_hz=env.rate_hz)
+    if isinstance(skill_cls, OfflineObservation):
+        _check_camera_names(env.vla.id, skill_cls.offline_observation(skill_params), env)
     hal: HAL = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
     _safety_client(env, robot)
     for index, _ in enumerate(env.sensors):
@@ -155,12 +157,16 @@ def check_deployment(env: RobotEnvironment, *, base_dir: Path | None = None) -> 
 
 def _check_cameras(skill: RSkillBase, env: RobotEnvironment) -> None:
     """Every camera the skill says it reads must be a sensor of the deployment: refused now, not at the first tick."""
+    _check_camera_names(skill.info.skill_id, skill.info.observation, env)
+
+
+def _check_camera_names(skill_id: str, observation: list[str], env: RobotEnvironment) -> None:
     sensors = [sensor.sensor_id for sensor in env.sensors]
-    wanted = [name.removeprefix("images.") for name in skill.info.observation if name.startswith("images.")]
+    wanted = [name.removeprefix("images.") for name in observation if name.startswith("images.")]
     missing = [name for name in wanted if name not in sensors]
     if missing:
         raise ROSConfigError(
-            f"skill '{skill.info.skill_id}' reads camera(s) {missing}, which the deployment does not have "
+            f"skill '{skill_id}' reads camera(s) {missing}, which the deployment does not have "
             f"(sensors: {sensors or 'none'})",
             field="sensors",
             hint="add the camera under sensors:, or map the policy's camera to one you have",
