@@ -137,6 +137,13 @@ class EpisodeTable:
                 _log.info("policy instance built for a client", client=episode.client, clients=len(self._episodes))
         return episode.skill
 
+    def release(self, client: str) -> None:
+        """Free the episode of ``client``, which left (its own instance is shut down by the worker)."""
+        with self._lock:
+            episode = self._episodes.pop(client, None)
+            if episode is not None and episode.skill is not None and episode.skill is not self._primary:
+                self._retired.append(episode.skill)
+
     def retire_all(self) -> None:
         """Shut down every per-client instance (the shared one is the server's to close)."""
         with self._lock:

@@ -7,7 +7,8 @@
   latest wins per client (a request overtaken by a newer one of the same client is answered
   ``superseded`` at once), clients are served in turn, and the queue is bounded. One worker
   thread infers; with ``max_batch`` above 1 and a skill that batches, concurrent clients'
-  requests go through the policy as one batch.
+  requests go through the policy as one batch. All of that is :class:`~openral_remote.service.PolicyService`,
+  shared with the other transports; this module is Zenoh's.
 * ``<prefix>/reset``: a new episode **of the sender** (``{"seed": n}``, the client's id in the
   attachment): each client has an episode of its own (:mod:`openral_remote.episodes`).
 * ``<prefix>/meta``: :class:`openral_remote.meta.PolicyMeta`, answered on Zenoh's thread.
@@ -23,41 +24,35 @@ server is done with.
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import threading
-import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import structlog
-from opentelemetry.trace import Span
 
 from openral_core import ROSConfigError
-from openral_observability import semconv, tracer
-from openral_observability.propagation import extract
 from openral_remote.admission import ImagesRead, RequestBounds, ServeLimits, admit, check_seed
 from openral_remote.codec import WireFormatError, decode, encode
 from openral_remote.config import ZenohConfig
-from openral_remote.episodes import ClientEpisode, EpisodeTable
-from openral_remote.fair_queue import INFER, RESET, FairQueue, Job
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
 from openral_remote.observation import request_from_fields
+from openral_remote.service import (
+    ERROR_BUSY,
+    ERROR_FULL,
+    ERROR_SHUTTING_DOWN,
+    ERROR_SUPERSEDED,
+    MAX_CLIENT_ID,
+    Answer,
+    PolicyService,
+)
+from openral_remote.service import ServiceStats as ServerStats
 from openral_remote.session import alive_behind, open_session
 from openral_rskill.base import RSkillBase
 from openral_rskill.chunks import ChunkRequest
 
 _log = structlog.get_logger(__name__)
 
-ERROR_SUPERSEDED = "superseded"
-ERROR_SHUTTING_DOWN = "shutting down"
-ERROR_BUSY = "busy"
-ERROR_FULL = "full"
-MAX_CLIENT_ID = 64
-"""Characters of a client's id kept: the episode table is keyed by it, and a peer picks it."""
 ALIVE_CHECK_TIMEOUT_S = 1.0
 """How long the start-up check waits for a live server's token (peers answer at once when connected)."""
 
@@ -71,31 +66,6 @@ def attachment_fields(attachment: Any) -> dict[str, Any]:
     except (ValueError, UnicodeDecodeError):
         return {}
     return value if isinstance(value, dict) else {}
-
-
-@dataclass
-class ServerStats:
-    """What a server has done since it started."""
-
-    served: int = 0
-    superseded: int = 0
-    errors: int = 0
-    resets: int = 0
-    refused: int = 0
-    """Requests turned away unread: over a limit, a camera the policy does not read, the queue or table full."""
-    batches: int = 0
-    largest_batch: int = 0
-
-
-@dataclass
-class _Prepared:
-    """An inference request decoded and matched with its client's episode and skill."""
-
-    job: Job
-    request: ChunkRequest
-    skill: RSkillBase
-    span: Span
-    queue_ms: float
 
 
 class PolicyServer:
@@ -125,21 +95,16 @@ class PolicyServer:
         self.skill = skill
         self.keys = keys
         self.zenoh = zenoh
-        self.meta = meta
         self.limits = limits or ServeLimits()
-        self.stats = ServerStats()
-        self._factory = factory
+        self.service = PolicyService(skill, meta=meta, limits=self.limits, factory=factory, name=keys.infer)
         self._meta_bytes = meta.to_bytes()
         self._images = ImagesRead.of(meta.observation)
         self._bounds = RequestBounds(
             history=meta.observation_steps - 1, prefix_rows=meta.chunk_size, action_dims=len(meta.action_names)
         )
-        self._queue = FairQueue(self.limits.max_pending)
-        self._episodes: EpisodeTable | None = None
         self._session: Any = None
         self._declared: list[Any] = []
         self._token: Any = None
-        self._worker: threading.Thread | None = None
 
     def __enter__(self) -> PolicyServer:
         self.start()
@@ -149,9 +114,19 @@ class PolicyServer:
         self.close()
 
     @property
+    def meta(self) -> PolicyMeta:
+        """What the policy is (with its warm-up time once started)."""
+        return self.service.meta
+
+    @property
+    def stats(self) -> ServerStats:
+        """What the server has done since it started."""
+        return self.service.stats
+
+    @property
     def clients(self) -> int:
         """Clients with an episode on the server now."""
-        return 0 if self._episodes is None else len(self._episodes)
+        return self.service.clients
 
     def start(self) -> None:
         """Warm the policy up, declare the keys, then (last) the liveliness token; rolled back on failure.
@@ -163,15 +138,9 @@ class PolicyServer:
         try:
             self._session = open_session(self.zenoh)
             self._refuse_if_served()
-            started = time.perf_counter()
-            self.skill.configure()
-            self.skill.activate()
-            self.meta = self.meta.model_copy(update={"warmup_ms": (time.perf_counter() - started) * 1e3})
-            self._meta_bytes = self.meta.to_bytes()
-            self._episodes = EpisodeTable(self.skill, factory=self._factory, limits=self.limits)
+            self.service.start()
+            self._meta_bytes = self.service.meta.to_bytes()
             self._refuse_if_served()
-            self._worker = threading.Thread(target=self._work, name="openral-policy-server", daemon=True)
-            self._worker.start()
             self._declared = [
                 self._session.declare_queryable(self.keys.meta, self._on_meta, complete=True),
                 self._session.declare_queryable(self.keys.infer, self._on_infer, complete=True),
@@ -186,8 +155,7 @@ class PolicyServer:
             key=self.keys.prefix,
             listen=self.zenoh.listen,
             model_hash=self.meta.model_hash[:12],
-            shared=self._episodes.shared,
-            max_batch=self._batch_limit(),
+            max_batch=self.service.batch_limit,
         )
 
     def close(self) -> None:
@@ -195,20 +163,13 @@ class PolicyServer:
         if self._token is not None:
             self._token.undeclare()
             self._token = None
-        for job in self._queue.drain():
-            _reply_error(job.query, ERROR_SHUTTING_DOWN)
-        if self._worker is not None:
-            self._worker.join(timeout=5.0)
-            self._worker = None
+        self.service.close()
         for declared in self._declared:
             declared.undeclare()
         self._declared = []
         if self._session is not None:
             self._session.close()
             self._session = None
-        if self._episodes is not None:
-            self._episodes.retire_all()
-        self.skill.shutdown()
 
     def _refuse_if_served(self) -> None:
         """Raise when a server linked to this session, or behind an endpoint it dials, declares the key's token."""
@@ -222,10 +183,6 @@ class PolicyServer:
                 hint="stop that server first, or serve this policy under another name (--name)",
             )
 
-    def _batch_limit(self) -> int:
-        shared = self._episodes is not None and self._episodes.shared
-        return min(self.limits.max_batch, self.skill.batch_capacity()) if shared else 1
-
     # -- Zenoh's threads -------------------------------------------------------------------
 
     def _on_meta(self, query: Any) -> None:
@@ -233,8 +190,20 @@ class PolicyServer:
         query.drop()
 
     def _on_reset(self, query: Any) -> None:
-        attachment = attachment_fields(query.attachment)
-        self._enqueue(Job(query, RESET, client=_client_id(attachment), payload=_payload(query)))
+        client = _client_id(attachment_fields(query.attachment))
+        try:
+            request = json.loads(_payload(query) or b"{}")
+            seed = check_seed(request.get("seed") if isinstance(request, dict) else None)
+        except (ValueError, WireFormatError) as exc:
+            self.service.stats.errors += 1
+            _reply_error(query, f"reset failed: {exc}")
+            return
+
+        def done() -> None:
+            query.reply(self.keys.reset, b"{}")
+            query.drop()
+
+        self.service.reset(client, seed, done=done, error=lambda text: _reply_error(query, text))
 
     def _on_infer(self, query: Any) -> None:
         attachment = attachment_fields(query.attachment)
@@ -242,174 +211,39 @@ class PolicyServer:
         try:
             admit(payload, limits=self.limits, images=self._images, bounds=self._bounds)
         except WireFormatError as exc:
-            self.stats.refused += 1
-            _reply_error(query, f"refused: {exc}")
+            self.service.refuse(lambda text: _reply_error(query, text), f"refused: {exc}")
             return
-        self._enqueue(Job(query, INFER, client=_client_id(attachment), attachment=attachment, payload=payload))
+        dims = len(self.meta.action_names)
 
-    def _enqueue(self, job: Job) -> None:
-        """Queue ``job`` for its client's episode; answer at once what it supersedes or displaces, or it if refused."""
-        episodes = self._episodes
-        if episodes is None or not episodes.admit(job.client):
-            self.stats.refused += 1
-            _reply_error(job.query, f"{ERROR_FULL}: the server has {self.limits.max_clients} clients under way")
-            return
-        job.established = episodes.established(job.client)
-        admission = self._queue.put(job)
-        for old in admission.superseded:
-            self.stats.superseded += 1
-            _reply_error(old.query, ERROR_SUPERSEDED)
-        for old in admission.displaced:
-            self.stats.refused += 1
-            _reply_error(old.query, f"{ERROR_BUSY}: displaced by a robot under way")
-        if not admission.accepted:
-            if self._token is None and not self._declared:
-                _reply_error(job.query, ERROR_SHUTTING_DOWN)
-            else:
-                self.stats.refused += 1
-                _reply_error(job.query, f"{ERROR_BUSY}: {self.limits.max_pending} requests are waiting")
+        def decoded() -> ChunkRequest:
+            return request_from_fields(decode(payload), action_dims=dims)
 
-    # -- the worker ------------------------------------------------------------------------
-
-    def _work(self) -> None:
-        episodes = self._episodes
-        assert episodes is not None
-        batch_limit = self._batch_limit()  # asked once: a model's batch dimension does not change
-        while True:
-            jobs = self._queue.take(batch_limit, self.limits.max_wait_ms / 1e3, episodes.active)
-            if not jobs:
-                return
-            if jobs[0].kind == RESET:
-                self._reset(jobs[0], episodes.episode(jobs[0].client))
-            else:
-                self._infer(jobs)
-
-    def _reset(self, job: Job, episode: ClientEpisode) -> None:
-        assert self._episodes is not None
-        try:
-            request = json.loads(job.payload or b"{}")
-            episode.seed = check_seed(request.get("seed") if isinstance(request, dict) else None)
-            episode.resets += 1
-            if not self._episodes.shared:  # the shared skill keeps no episode: its clients' seeds are theirs
-                skill = self._episodes.skill_of(episode)
-                _recover(skill)
-                skill.reset(seed=episode.seed)
-        except Exception as exc:
-            self.stats.errors += 1
-            _reply_error(job.query, f"reset failed: {exc}")
-            return
-        self.stats.resets += 1
-        job.query.reply(self.keys.reset, b"{}")
-        job.query.drop()
-
-    def _infer(self, jobs: Sequence[Job]) -> None:
-        """Decode each request, run them (batched where they share a skill that batches), answer each."""
-        prepared = [p for p in (self._prepare(job, len(jobs)) for job in jobs) if p is not None]
-        groups: dict[int, list[_Prepared]] = {}
-        for item in prepared:
-            groups.setdefault(id(item.skill), []).append(item)
-        for group in groups.values():
-            self._run(group)
-
-    def _prepare(self, job: Job, batch_size: int) -> _Prepared | None:
-        queue_ms = (time.monotonic_ns() - job.received_ns) / 1e6
-        carrier: dict[str, str] = {
-            key: str(job.attachment[key]) for key in ("traceparent", "tracestate") if key in job.attachment
-        }
-        span = tracer().start_span(
-            semconv.SPAN_REMOTE_INFER,
-            context=extract(carrier),
-            attributes={
-                semconv.ATTR_REMOTE_KEY: self.keys.infer,
-                semconv.ATTR_REMOTE_QUEUE_MS: queue_ms,
-                semconv.ATTR_REMOTE_REQUEST_BYTES: len(job.payload),
-                semconv.ATTR_REMOTE_BATCH_SIZE: batch_size,
-            },
-        )
-        assert self._episodes is not None
-        try:
-            episode = self._episodes.episode(job.client)
-            try:
-                request = request_from_fields(decode(job.payload), action_dims=len(self.meta.action_names))
-            except WireFormatError as exc:
-                raise WireFormatError(f"bad request: {exc}") from None
-            if request.seed is None and episode.seed is not None:  # a client that sends its seed on reset only
-                request = dataclasses.replace(request, seed=episode.seed)
-            skill = self._episodes.skill_of(episode)
-            _recover(skill)  # an earlier inference failed: try again from a clean state
-        except Exception as exc:
-            self._fail(job, span, exc)
-            return None
-        return _Prepared(job, request, skill, span, queue_ms)
-
-    def _run(self, group: list[_Prepared]) -> None:
-        """One inference for the group where its skill batches; one by one otherwise, or if the batch fails."""
-        skill = group[0].skill
-        started = time.perf_counter()
-        if len(group) > 1:
-            try:
-                chunks = skill.step_chunks([item.request for item in group])
-            except Exception as exc:  # one bad request must not fail the others: run them one by one
-                _log.warning("a batch failed; running its requests one by one", error=str(exc), size=len(group))
-                _recover(skill)
-            else:
-                infer_ms = (time.perf_counter() - started) * 1e3
-                self._note_batch(len(group))
-                for item, chunk in zip(group, chunks, strict=True):
-                    self._answer(item, chunk, infer_ms)
-                return
-        for item in group:
-            started = time.perf_counter()
-            try:
-                chunk = item.skill.step_chunk(item.request)
-            except Exception as exc:
-                self._fail(item.job, item.span, exc)
-                _recover(item.skill)
-                continue
-            self._note_batch(1)
-            self._answer(item, chunk, (time.perf_counter() - started) * 1e3)
-
-    def _answer(self, item: _Prepared, chunk: np.ndarray, infer_ms: float) -> None:
-        rows = np.asarray(chunk, dtype=np.float64)
-        if rows.ndim != 2 or rows.shape[1] != len(self.meta.action_names):
-            dims = len(self.meta.action_names)
-            self._fail(
-                item.job, item.span, ROSConfigError(f"the policy returned rows of shape {rows.shape}, not (n, {dims})")
+        def answer(answer: Answer) -> int:
+            reply = encode(
+                {
+                    "chunk": answer.rows,
+                    "infer_ms": answer.infer_ms,
+                    "queue_ms": answer.queue_ms,
+                    "model_hash": self.meta.model_hash,
+                }
             )
-            return
-        reply = encode(
-            {"chunk": rows, "infer_ms": infer_ms, "queue_ms": item.queue_ms, "model_hash": self.meta.model_hash}
+            query.reply(self.keys.infer, reply)
+            query.drop()
+            return len(reply)
+
+        self.service.infer(
+            _client_id(attachment),
+            decoded,
+            answer=answer,
+            error=lambda text: _reply_error(query, text),
+            trace={key: str(attachment[key]) for key in ("traceparent", "tracestate") if key in attachment},
+            request_bytes=len(payload),
         )
-        item.span.set_attributes({semconv.ATTR_REMOTE_OUTCOME: "ok", semconv.ATTR_REMOTE_REPLY_BYTES: len(reply)})
-        item.span.end()
-        assert self._episodes is not None
-        self._episodes.episode(item.job.client).served += 1
-        self.stats.served += 1
-        item.job.query.reply(self.keys.infer, reply)
-        item.job.query.drop()
-
-    def _fail(self, job: Job, span: Span, exc: Exception) -> None:
-        self.stats.errors += 1
-        span.record_exception(exc)
-        span.set_attribute(semconv.ATTR_REMOTE_OUTCOME, "error")
-        span.end()
-        _reply_error(job.query, f"{type(exc).__name__}: {exc}")
-
-    def _note_batch(self, size: int) -> None:
-        self.stats.batches += 1
-        self.stats.largest_batch = max(self.stats.largest_batch, size)
 
 
 def _client_id(attachment: dict[str, Any]) -> str:
     """The client's id from its attachment, cut to ``MAX_CLIENT_ID`` characters (a peer chooses it freely)."""
     return str(attachment.get("client", ""))[:MAX_CLIENT_ID]
-
-
-def _recover(skill: RSkillBase) -> None:
-    """Bring a skill whose last inference failed back to active, from a clean state."""
-    if skill.last_error is not None:
-        skill.recover()
-        skill.activate()
 
 
 def _payload(query: Any) -> bytes:
@@ -422,3 +256,14 @@ def _reply_error(query: Any, text: str) -> None:
         query.reply_err(text.encode("utf-8"))
     finally:
         query.drop()
+
+
+__all__ = [
+    "ERROR_BUSY",
+    "ERROR_FULL",
+    "ERROR_SHUTTING_DOWN",
+    "ERROR_SUPERSEDED",
+    "PolicyServer",
+    "ServerStats",
+    "attachment_fields",
+]
