@@ -158,12 +158,12 @@ def _websocket_server(
 ) -> Any:
     """The server of a websocket ``protocol`` (a context manager with ``url``, ``meta`` and ``stats``)."""
     if protocol == "openpi":
-        profiles = importlib.import_module("openral_remote.openpi_profiles")
-        profile = profiles.OpenpiProfile(
-            openpi_profile, image_size=None, state_names=state_names if openpi_profile == "openral" else None
-        )
-        server_module = importlib.import_module("openral_remote.openpi_server")
-        return server_module.OpenpiServer(
+        from openral_remote.openpi_profiles import PROFILES, OpenpiProfile  # noqa: PLC0415 - the 'remote' extra
+        from openral_remote.openpi_server import OpenpiServer  # noqa: PLC0415
+
+        name = PROFILES[PROFILES.index(openpi_profile)]  # click's choice, as the profile's literal type
+        profile = OpenpiProfile(name, image_size=None, state_names=state_names if openpi_profile == "openral" else None)
+        return OpenpiServer(
             skill,
             meta=meta,
             profile=profile,
@@ -174,12 +174,9 @@ def _websocket_server(
             api_key=api_key,
             tls=tls,
         )
-    # vla-eval: its module's serve_vla_eval makes the server from the same arguments.
-    vla_eval = importlib.import_module("openral_remote.vla_eval_server")
-    make = getattr(vla_eval, "serve_vla_eval", None)
-    if make is None:
-        raise ROSConfigError("--protocol vla-eval is not available in this version", field="--protocol")
-    return make(
+    from openral_remote.vla_eval_server import serve_vla_eval  # noqa: PLC0415 - the 'remote' extra
+
+    return serve_vla_eval(
         skill,
         meta=meta,
         host=host,

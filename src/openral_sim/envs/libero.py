@@ -14,8 +14,18 @@ so an episode depends on its seed alone.
 The action is LIBERO's 7-d OSC_POSE delta: ``dx dy dz`` (one unit moves the controller's target
 5 cm), ``drx dry drz`` (a world-frame rotation vector, one unit 0.5 rad), and ``gripper``, an
 absolute command (-1 open, +1 close) the fingers move towards at a limited speed; holding is zero
-motion with the gripper command kept. 20 Hz. The state is LeRobot's 8-d LIBERO state: end-effector
-position, its orientation as a rotation vector, the two finger joints. Privileged values:
+motion with the gripper command kept. 20 Hz. Every dimension is clipped to [-1, 1], as LeRobot
+does. robosuite's Panda gripper moves its fingers by the command's sign alone (0 holds them);
+``gripper: sign`` sends -1 below zero and +1 otherwise, as vla-eval does, which differs only for a
+command of exactly 0 (closing instead of holding).
+
+Episode length is the scene's ``max_steps`` (the suites' scenes use LeRobot's, :data:`MAX_STEPS`);
+``step_limit: openpi`` (or ``lerobot``) also ends a suite task's episode as truncated after that
+protocol's length for the suite (:data:`OPENPI_MAX_STEPS`: openpi's example and vla-eval), so one
+scene file can be scored either way. The settle steps are not counted, on every side.
+
+The state is LeRobot's 8-d LIBERO state: end-effector position, its orientation as a rotation
+vector, the two finger joints. Privileged values:
 ``eef_pos``, ``eef_quat`` (x y z w), ``gripper_qpos``; per movable object ``<name>_pos``,
 ``<name>_quat`` and ``<name>_aabb`` (world bounding box: min xyz, max xyz); ``<name>_pos`` of
 fixtures and region sites (``basket_1_contain_region``); per ``On``/``In`` predicate ``i`` of the
@@ -106,6 +116,17 @@ MAX_STEPS: dict[str, int] = {
 }
 """LeRobot's episode length per suite (its longest training demonstration plus a margin)."""
 
+OPENPI_MAX_STEPS: dict[str, int] = {
+    "libero_spatial": 220,
+    "libero_object": 280,
+    "libero_goal": 300,
+    "libero_10": 520,
+    "libero_90": 400,
+}
+"""openpi's LIBERO example's episode length per suite, which vla-eval uses too."""
+
+STEP_LIMITS: dict[str, dict[str, int]] = {"lerobot": MAX_STEPS, "openpi": OPENPI_MAX_STEPS}
+
 CONTROL_HZ = 20
 _SETTLE_ACTION = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0])
 _PLACEMENT_TRIES = 20
@@ -125,6 +146,14 @@ class LiberoParams(BaseModel):
         default="upright", description="upright, or mirrored left to right as LeRobot's LIBERO datasets store frames."
     )
     gl: Literal["egl", "osmesa"] | None = Field(default=None, description="OpenGL backend for camera renders.")
+    gripper: Literal["clip", "sign"] = Field(
+        default="clip",
+        description="clip the gripper command to [-1, 1] (LeRobot), or send its sign (vla-eval).",
+    )
+    step_limit: Literal["scene", "lerobot", "openpi"] = Field(
+        default="scene",
+        description="scene: max_steps alone; lerobot or openpi: also truncate a suite task at that protocol's length.",
+    )
 
 
 class LiberoEnv:
@@ -134,6 +163,9 @@ class LiberoEnv:
         self.params = params
         self.suite = suite
         self._init_states: np.ndarray | None = None
+        self.step_limit = _step_limit(suite, params.step_limit)
+        """Steps after which an episode is truncated (``None``: the scene's ``max_steps`` alone)."""
+        self._steps = 0
         if suite is not None:
             bddl, self.instruction, self._init_states = _suite_task(suite, params.task_index)
             what = f"LIBERO {suite} task {params.task_index}"
@@ -190,6 +222,14 @@ class LiberoEnv:
         suite = _check_source(scene.env_id, params)
         if params.bddl is not None:
             params = params.model_copy(update={"bddl": str(scene.resolve_path(params.bddl))})
+        limit = _step_limit(suite, params.step_limit)
+        if limit is not None and scene.max_steps < limit:
+            raise ROSConfigError(
+                f"max_steps {scene.max_steps} ends every episode before step_limit {params.step_limit!r} "
+                f"({limit} steps) can",
+                field="max_steps",
+                hint=f"set max_steps to at least {limit}, or remove env_kwargs.step_limit",
+            )
         env = cls(suite, params)
         try:
             check_cameras(env.model, [c.name for c in scene.cameras], env=env.what)
@@ -231,6 +271,7 @@ class LiberoEnv:
         finally:
             np.random.set_state(saved)
         success = False
+        self._steps = 0
         for _ in range(self.params.settle_steps):
             obs, _, done, _ = self._env.step(_SETTLE_ACTION)
             success = bool(done)
@@ -239,10 +280,14 @@ class LiberoEnv:
 
     def step(self, action: np.ndarray) -> SimStep:
         command = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        if self.params.gripper == "sign":
+            command[6] = -1.0 if command[6] < 0 else 1.0
         obs, reward, done, _ = self._env.step(command)
+        self._steps += 1
         # LIBERO's step reports check_success() as done; the scene decides whether success ends the episode.
         observation = self._state.observe(obs, {"is_success": bool(done)})
-        return SimStep(observation, reward=float(reward), terminated=False, truncated=False)
+        truncated = self.step_limit is not None and self._steps >= self.step_limit
+        return SimStep(observation, reward=float(reward), terminated=False, truncated=truncated)
 
     def render(self, camera: str, width: int, height: int) -> np.ndarray:
         frame = self._views.render(camera, width, height)
@@ -268,6 +313,23 @@ class LiberoEnv:
 
 def _field(suite: str | None) -> str:
     return "env_kwargs.task_index" if suite is not None else "env_kwargs.bddl"
+
+
+def _step_limit(suite: str | None, step_limit: str) -> int | None:
+    """The episode length ``step_limit`` names for ``suite`` (``None`` for ``scene``).
+
+    Raises:
+        ROSConfigError: A protocol's length asked for a problem file (the protocols define suites' only).
+    """
+    if step_limit == "scene":
+        return None
+    if suite is None:
+        raise ROSConfigError(
+            f"step_limit {step_limit!r} is defined for LIBERO's suites, not for a problem file",
+            field="env_kwargs.step_limit",
+            hint="remove it and set the scene's max_steps",
+        )
+    return STEP_LIMITS[step_limit][suite]
 
 
 def _check_source(env_id: str | None, params: LiberoParams) -> str | None:
