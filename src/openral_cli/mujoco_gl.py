@@ -17,6 +17,7 @@ from typing import Final
 from openral_core import ROSConfigError
 
 VARIABLE: Final = "MUJOCO_GL"
+PYOPENGL_VARIABLE: Final = "PYOPENGL_PLATFORM"
 BACKENDS: Final = ("egl", "osmesa", "glfw")
 """The ``MUJOCO_GL`` values MuJoCo, dm_control and gymnasium all accept."""
 
@@ -25,10 +26,19 @@ def check_mujoco_gl(environ: Mapping[str, str] | None = None) -> None:
     """Refuse a ``MUJOCO_GL`` that the simulators cannot render with; unset is fine (each picks one).
 
     Raises:
-        ROSConfigError: ``MUJOCO_GL`` is set to anything but egl, osmesa or glfw.
+        ROSConfigError: ``MUJOCO_GL`` is set to anything but egl, osmesa or glfw, or names egl or
+            osmesa while ``PYOPENGL_PLATFORM`` names the other.
     """
     environ = os.environ if environ is None else environ
     value = environ.get(VARIABLE)
+    platform = environ.get(PYOPENGL_VARIABLE)
+    if value in ("egl", "osmesa") and platform and platform != value:
+        # PyOpenGL binds one platform per process: MuJoCo's module for the other refuses to import.
+        raise ROSConfigError(
+            f"{value!r} cannot render while {PYOPENGL_VARIABLE} is {platform!r} (one OpenGL platform per process)",
+            field=VARIABLE,
+            hint=f"set both to the same backend, or unset {PYOPENGL_VARIABLE}",
+        )
     if value is None or value in BACKENDS:
         return
     working = available_backends(environ)

@@ -74,3 +74,12 @@ def test_a_fresh_process_exits_2_instead_of_mujocos_runtime_error(tmp_path: Path
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.startswith("error: MUJOCO_GL: 'nonexistent'")
     assert "RuntimeError" not in proc.stderr
+
+
+@pytest.mark.parametrize(("gl", "platform"), [("osmesa", "egl"), ("egl", "osmesa")])
+def test_a_mujoco_gl_that_pyopengls_platform_contradicts_is_refused_naming_both(gl: str, platform: str) -> None:
+    with pytest.raises(ROSConfigError) as info:
+        mujoco_gl.check_mujoco_gl({"MUJOCO_GL": gl, "PYOPENGL_PLATFORM": platform})
+    assert info.value.field == "MUJOCO_GL"
+    assert f"while PYOPENGL_PLATFORM is {platform!r}" in str(info.value)
+    mujoco_gl.check_mujoco_gl({"MUJOCO_GL": gl, "PYOPENGL_PLATFORM": gl})  # agreeing is fine

@@ -88,11 +88,18 @@ def vla_eval_path(request: pytest.FixtureRequest) -> str:
     return os.pathsep.join([str(root / "site"), str(root / "stub")])
 
 
+def _osmesa_environ() -> dict[str, str]:
+    """This process's environment for a child that renders with OSMesa (an EGL platform bound here is not passed)."""
+    env = {key: value for key, value in os.environ.items() if key != "PYOPENGL_PLATFORM"}
+    env["MUJOCO_GL"] = "osmesa"
+    return env
+
+
 @pytest.fixture
 def serve(tmp_path: Path) -> Iterator[Callable[..., str]]:
     """``serve(*args)``: ``openral serve --protocol vla-eval`` in a child process; returns its URL once listening."""
     started: list[subprocess.Popen[str]] = []
-    env = {**os.environ, "PYTHONPATH": str(register(tmp_path / "registered")), "MUJOCO_GL": "osmesa"}
+    env = {**_osmesa_environ(), "PYTHONPATH": str(register(tmp_path / "registered"))}
 
     def start(*args: str) -> str:
         command = [sys.executable, "-m", "openral_cli", "serve", "--protocol", "vla-eval", *args]
@@ -120,7 +127,7 @@ def record_expert(tmp_path: Path) -> tuple[dict[int, dict[str, object]], dict[in
         sys.executable, "-m", "openral_cli", "sim", "run", "--config", str(SCENE), "--skill", "libero_expert",
         "--n-episodes", str(EPISODES), "--no-cameras", "--dataset-out", str(out), "--json",
     ]  # fmt: skip
-    done = subprocess.run(command, capture_output=True, text=True, timeout=600, check=False)
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600, check=False, env=_osmesa_environ())
     assert done.returncode == 0, done.stderr[-3000:]
     results = {episode["seed"]: episode for episode in json.loads(done.stdout)["episodes"]}
     actions: dict[int, list[list[float]]] = {}
@@ -160,7 +167,7 @@ def run_vla_eval(tmp_path: Path, url: str, path: str) -> tuple[dict[int, dict[st
         sys.executable, "-m", "vla_eval.cli.main", "run", "--config", str(config), "--no-docker",
         "--server-url", url, "--output-dir", str(out),
     ]  # fmt: skip
-    env = {**os.environ, "PYTHONPATH": path}
+    env = {**_osmesa_environ(), "PYTHONPATH": path}
     done = subprocess.run(command, capture_output=True, text=True, timeout=840, check=False, env=env)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
     aggregate = json.loads((out / "LIBEROBenchmark_aggregate.json").read_text())

@@ -90,8 +90,10 @@ try:
         from libero.libero.envs.objects import get_object_dict
         from libero.libero.envs.predicates import get_predicate_fn_dict
         from robosuite.utils import RandomizationError
-except ImportError as exc:
+except ModuleNotFoundError as exc:
     raise ROSDependencyMissing(exc.name or "libero", extra="libero", needed_for="the LIBERO tasks") from exc
+except ImportError as exc:  # installed, but it cannot load here (an OpenGL platform mismatch, a broken library)
+    raise ROSConfigError(f"LIBERO is installed but cannot be imported here: {exc}") from exc
 
 _log = structlog.get_logger(__name__)
 
