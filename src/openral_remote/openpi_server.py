@@ -48,7 +48,7 @@ from openral_remote.config import TlsConfig
 from openral_remote.meta import PolicyMeta
 from openral_remote.msgpack_numpy import Limits, array_header, decode_tree, packb, unpack_tree
 from openral_remote.openpi_profiles import OpenpiProfile
-from openral_remote.service import Answer, PolicyService, ServiceStats
+from openral_remote.service import Answer, PolicyService, ServiceTransport
 from openral_rskill.base import RSkillBase
 from openral_rskill.chunks import ChunkRequest
 
@@ -80,7 +80,7 @@ def server_ssl(tls: TlsConfig) -> ssl.SSLContext:
     return context
 
 
-class OpenpiServer:
+class OpenpiServer(ServiceTransport):
     """Serves ``skill`` to openpi clients on ``host:port`` until closed (a context manager).
 
     Args:
@@ -128,21 +128,6 @@ class OpenpiServer:
         self._thread: threading.Thread | None = None
         self._metadata = b""
         self._tasks: set[asyncio.Future[None]] = set()
-
-    def __enter__(self) -> OpenpiServer:
-        self.start()
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
-
-    @property
-    def meta(self) -> PolicyMeta:
-        return self.service.meta
-
-    @property
-    def stats(self) -> ServiceStats:
-        return self.service.stats
 
     @property
     def url(self) -> str:

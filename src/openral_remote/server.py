@@ -45,6 +45,7 @@ from openral_remote.service import (
     MAX_CLIENT_ID,
     Answer,
     PolicyService,
+    ServiceTransport,
 )
 from openral_remote.service import ServiceStats as ServerStats
 from openral_remote.session import alive_behind, open_session
@@ -68,7 +69,7 @@ def attachment_fields(attachment: Any) -> dict[str, Any]:
     return value if isinstance(value, dict) else {}
 
 
-class PolicyServer:
+class PolicyServer(ServiceTransport):
     """Serves ``skill`` on the keys of ``keys`` until closed (a context manager).
 
     Args:
@@ -105,28 +106,6 @@ class PolicyServer:
         self._session: Any = None
         self._declared: list[Any] = []
         self._token: Any = None
-
-    def __enter__(self) -> PolicyServer:
-        self.start()
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
-
-    @property
-    def meta(self) -> PolicyMeta:
-        """What the policy is (with its warm-up time once started)."""
-        return self.service.meta
-
-    @property
-    def stats(self) -> ServerStats:
-        """What the server has done since it started."""
-        return self.service.stats
-
-    @property
-    def clients(self) -> int:
-        """Clients with an episode on the server now."""
-        return self.service.clients
 
     def start(self) -> None:
         """Warm the policy up, declare the keys, then (last) the liveliness token; rolled back on failure.

@@ -29,6 +29,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Self
 
 import numpy as np
 import structlog
@@ -420,6 +421,44 @@ def _recover(skill: RSkillBase) -> None:
         skill.activate()
 
 
+class ServiceTransport:
+    """What every transport over a :class:`PolicyService` shares: a context manager, the policy's meta, the figures.
+
+    A transport sets ``service`` in its constructor and implements ``start`` (warm the policy up,
+    then listen) and ``close``.
+    """
+
+    service: PolicyService
+
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    @property
+    def meta(self) -> PolicyMeta:
+        """What the policy is (with its warm-up time once started)."""
+        return self.service.meta
+
+    @property
+    def stats(self) -> ServiceStats:
+        """What the service has done since it started."""
+        return self.service.stats
+
+    @property
+    def clients(self) -> int:
+        """Clients with an episode now."""
+        return self.service.clients
+
+
 __all__ = [
     "ERROR_BUSY",
     "ERROR_FULL",
@@ -429,4 +468,5 @@ __all__ = [
     "Answer",
     "PolicyService",
     "ServiceStats",
+    "ServiceTransport",
 ]

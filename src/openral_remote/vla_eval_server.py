@@ -58,7 +58,7 @@ from openral_remote.codec import WireFormatError
 from openral_remote.config import TlsConfig
 from openral_remote.meta import PolicyMeta
 from openral_remote.openpi_server import auth_header, server_ssl
-from openral_remote.service import ERROR_SUPERSEDED, Answer, PolicyService
+from openral_remote.service import ERROR_SUPERSEDED, Answer, PolicyService, ServiceTransport
 from openral_remote.vla_eval_observation import MAX_TEXT, MAX_VALUES, PROFILES, ObservationReader, VlaEvalProfile
 from openral_rskill.anchoring import ActionRepresentation, Anchor
 from openral_rskill.base import RSkillBase
@@ -120,7 +120,7 @@ class _Asked:
     """The observation without its pixels (its ``stamp_ns`` is its tick)."""
 
 
-class VlaEvalServer:
+class VlaEvalServer(ServiceTransport):
     """Serves ``skill`` to vla-eval's harness on ``ws://host:port`` until closed (a context manager).
 
     Args:
@@ -175,17 +175,6 @@ class VlaEvalServer:
         self._ready = threading.Event()
         self._failure: BaseException | None = None
         self._sending: set[asyncio.Future[Any]] = set()
-
-    def __enter__(self) -> VlaEvalServer:
-        self.start()
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
-
-    @property
-    def meta(self) -> PolicyMeta:
-        return self.service.meta
 
     @property
     def url(self) -> str:
