@@ -43,7 +43,24 @@ class PolicyMeta(BaseModel):
 
     @classmethod
     def from_bytes(cls, data: bytes) -> PolicyMeta:
-        return cls.model_validate_json(data)
+        """Parse a server's meta.
+
+        Raises:
+            ValueError: Not policy meta; or meta with fields this openral does not know, which a
+                newer server sends (they change what a request must carry: the robot's openral
+                is upgraded with the server's, never guessed across).
+        """
+        try:
+            fields = json.loads(data)
+        except ValueError as exc:
+            raise ValueError(f"not JSON: {exc}") from None
+        unknown = sorted(set(fields) - set(cls.model_fields)) if isinstance(fields, dict) else []
+        if unknown:
+            raise ValueError(
+                f"the server's meta has fields this openral does not know ({', '.join(unknown[:8])}): "
+                "the server runs a newer openral; upgrade the robot's to the server's"
+            )
+        return cls.model_validate(fields)
 
     def differences(self, other: PolicyMeta) -> list[str]:
         """The fields in which ``other`` differs from this (empty: the same policy)."""

@@ -1,3 +1,4 @@
+import json
 from pathlib import Path
 
 import pytest
@@ -36,6 +37,18 @@ def test_meta_survives_the_wire_and_names_its_differences():
         "chunk_size",
         "model_hash",
     ]
+
+
+def test_meta_from_a_newer_server_names_the_fields_and_says_to_upgrade_the_robot():
+    meta = chunk_meta(ChunkSkill(["a", "b"]), rate_hz=10.0, model_hash="h1")
+    newer = json.loads(meta.to_bytes())
+    newer["observation_window"] = 4
+    with pytest.raises(ValueError, match=r"fields this openral does not know \(observation_window\).*upgrade"):
+        PolicyMeta.from_bytes(json.dumps(newer).encode())
+    with pytest.raises(ValueError, match="not JSON"):
+        PolicyMeta.from_bytes(b"{")
+    with pytest.raises(ValueError, match="chunk_size"):  # a field missing or wrong is still pydantic's line
+        PolicyMeta.from_bytes(json.dumps({**json.loads(meta.to_bytes()), "chunk_size": 0}).encode())
 
 
 @pytest.mark.parametrize(
