@@ -119,7 +119,8 @@ class HardwareRunner(SkillRunnerBase):
         self._synced_readers = [
             with_read_synced(r, clock_ns=clock_ns) for r in self.sensor_readers if r.sensor_id in synced
         ]
-        self._free_readers = [r for r in self.sensor_readers if r.sensor_id not in synced]
+        # Each free reader with its read counters, paired once: the tick looks nothing up.
+        self._free_readers = [(r, self._reads[r.sensor_id]) for r in self.sensor_readers if r.sensor_id not in synced]
         self._required_ids = frozenset(r.sensor_id for r in self.sensor_readers if aggregator.is_required(r.sensor_id))
         self._opened: ExitStack | None = None
         self._episode_idx = -1
@@ -218,7 +219,8 @@ class HardwareRunner(SkillRunnerBase):
                 ``sensor_ready_timeout_s`` (the message names it, its newest frame's age and its capture
                 rate), or failed while starting (its own error).
         """
-        self._reads = {r.sensor_id: SensorReads() for r in self.sensor_readers}
+        for reads in self._reads.values():
+            reads.clear()
         self._await_fresh_sensors()
         return self._phase_origin()
 
@@ -357,8 +359,8 @@ class HardwareRunner(SkillRunnerBase):
         t0 = now()
         failures = self._failures
         failures.clear()
-        for reader in self._free_readers:
-            self._read_sensor(reader)
+        for reader, reads in self._free_readers:
+            self._read_sensor(reader, reads)
         if self._synced_readers:
             self._read_synced_set()
         t_read = now()
@@ -497,10 +499,9 @@ class HardwareRunner(SkillRunnerBase):
     def _accept_frame(self, frame: SensorFrame) -> None:
         self._frames[frame.sensor_id] = frame
 
-    def _read_sensor(self, reader: SensorReader) -> None:
+    def _read_sensor(self, reader: SensorReader, reads: SensorReads) -> None:
         """Take one reader's latest frame, or its verdict (stale, failed) on this tick's read, for the snapshot."""
         span = self._telemetry.start_span(semconv.SPAN_SENSORS_READ)
-        reads = self._reads[reader.sensor_id]
         reads.reads += 1
         try:
             frame = reader.read_latest()

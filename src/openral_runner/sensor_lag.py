@@ -43,6 +43,12 @@ class SensorReads:
     stale_age_ms_sum: float = 0.0
     stale_age_ms_max: float = 0.0
 
+    def clear(self) -> None:
+        """Forget every read: a new run counts its own."""
+        self.max_age_ms = None
+        self.reads = self.stale = self.unaged = 0
+        self.stale_age_ms_sum = self.stale_age_ms_max = 0.0
+
     def stale_read(self, age_ms: float | None, max_age_ms: float | None) -> None:
         """The read found no frame within ``max_age_ms`` (``age_ms`` ``None``: no frame yet, or no set in sync)."""
         self.stale += 1

@@ -961,3 +961,18 @@ def test_an_observer_that_cannot_start_is_refused_before_the_robot_is_touched() 
     assert not cam.is_open
     assert refusing.closed == 1
     assert watching.closed == 1, "what was built is closed by the rollback"
+
+
+def test_each_run_reports_its_own_sensor_reads() -> None:
+    clock = FakeClock()
+    cam = ScriptedReader("cam", clock, max_age_ms=100.0)
+    _stale_after_first_read(cam, 500.0)
+    runner, _hal, _skill = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="cam")])
+    runner.activate()
+    first = runner.run(2)
+    cam.age_ms = 1.0
+    cam.on_read = None
+    second = runner.run(3)
+    assert first.metadata["sensors"]["cam"]["stale_reads"] == 2
+    assert (second.metadata["sensors"]["cam"]["reads"], second.metadata["sensors"]["cam"]["stale_reads"]) == (3, 0)
+    assert second.metadata["sensors"]["cam"]["stale_age_ms_max"] is None
