@@ -11,7 +11,7 @@ forms through :func:`call_frame`.
 
 from __future__ import annotations
 
-from typing import Any, Protocol, TypeAlias, overload
+from typing import Any, Generic, Protocol, TypeAlias, TypeVar, overload
 
 import numpy as np
 from pydantic import BaseModel
@@ -100,7 +100,41 @@ def call_frame(
     return buffer_frame(frame_bgr, width, height, sensor_id)
 
 
-class BufferMotionDetector:
+MetadataT = TypeVar("MetadataT", bound=BaseModel)
+
+
+class BufferDetector(Generic[MetadataT]):
+    """A detector called with a ``DetectorFrame`` alone, or with a BGR buffer, its size and its camera.
+
+    Subclasses implement :meth:`detect_frame`; the two call forms meet in :func:`call_frame`.
+    """
+
+    @overload
+    def detect(self, frame_bgr: DetectorFrame) -> MetadataT | None: ...
+
+    @overload
+    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> MetadataT | None: ...
+
+    def detect(
+        self,
+        frame_bgr: FrameBuffer | DetectorFrame,
+        width: int | None = None,
+        height: int | None = None,
+        sensor_id: str | None = None,
+    ) -> MetadataT | None:
+        """The event in the frame, or ``None``.
+
+        Raises:
+            ValueError: A buffer whose size is not ``width`` × ``height`` (see :func:`buffer_frame`).
+        """
+        return self.detect_frame(call_frame(frame_bgr, width, height, sensor_id))
+
+    def detect_frame(self, frame: DetectorFrame) -> MetadataT | None:
+        """The event in ``frame``, or ``None``."""
+        raise NotImplementedError
+
+
+class BufferMotionDetector(BufferDetector[MotionMetadata]):
     """Motion as the mean change of grey level since the same camera's previous frame.
 
     Grey is BT.601 luma, taken every ``downsample`` pixels along both axes. The mean absolute
@@ -125,25 +159,8 @@ class BufferMotionDetector:
         self.downsample = downsample
         self._previous: dict[str, np.ndarray] = {}
 
-    @overload
-    def detect(self, frame_bgr: DetectorFrame) -> MotionMetadata | None: ...
-
-    @overload
-    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> MotionMetadata | None: ...
-
-    def detect(
-        self,
-        frame_bgr: FrameBuffer | DetectorFrame,
-        width: int | None = None,
-        height: int | None = None,
-        sensor_id: str | None = None,
-    ) -> MotionMetadata | None:
-        """Motion against this camera's previous frame (``None`` below the threshold, or nothing to compare with).
-
-        Raises:
-            ValueError: A buffer whose size is not ``width`` × ``height`` (see :func:`buffer_frame`).
-        """
-        frame = call_frame(frame_bgr, width, height, sensor_id)
+    def detect_frame(self, frame: DetectorFrame) -> MotionMetadata | None:
+        """Motion against this camera's previous frame (``None`` below the threshold, or nothing to compare with)."""
         step = self.downsample
         grey = self._grey(frame).astype(np.int16)  # a copy: the capture buffer may be reused
         previous = self._previous.get(frame.sensor_id)
@@ -175,7 +192,7 @@ class BufferMotionDetector:
         return DetectorFrame.from_array(pixels, sensor_id=frame.sensor_id, encoding=frame.frame.encoding).grey
 
 
-class BufferSceneChangeDetector:
+class BufferSceneChangeDetector(BufferDetector[SceneChangeMetadata]):
     """A scene change: 32-bin grey histograms of consecutive frames apart by more than ``threshold``.
 
     The distance is OpenCV's ``HISTCMP_CHISQR_ALT`` over normalised histograms,
@@ -197,25 +214,9 @@ class BufferSceneChangeDetector:
         self.threshold = threshold
         self._histograms = SceneChangeDetector(SceneChangeParams(threshold=threshold / 2, bins=self.bins))
 
-    @overload
-    def detect(self, frame_bgr: DetectorFrame) -> SceneChangeMetadata | None: ...
-
-    @overload
-    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> SceneChangeMetadata | None: ...
-
-    def detect(
-        self,
-        frame_bgr: FrameBuffer | DetectorFrame,
-        width: int | None = None,
-        height: int | None = None,
-        sensor_id: str | None = None,
-    ) -> SceneChangeMetadata | None:
-        """A scene change against this camera's previous frame (``None`` within the threshold, or for its first).
-
-        Raises:
-            ValueError: A buffer whose size is not ``width`` × ``height`` (see :func:`buffer_frame`).
-        """
-        return self._histograms.detect(call_frame(frame_bgr, width, height, sensor_id))
+    def detect_frame(self, frame: DetectorFrame) -> SceneChangeMetadata | None:
+        """A scene change against this camera's previous frame (``None`` within the threshold, or for its first)."""
+        return self._histograms.detect(frame)
 
     def summarise(self, metadata: SceneChangeMetadata) -> str:
         return (

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal, overload
+from typing import Any, Literal
 
 from openral_core import ROSConfigError, ROSDependencyMissing
 from openral_core.config import validate_model
 from openral_core.perception import ObjectsMetadata
-from openral_perception.detectors.buffers import FrameBuffer, call_frame
+from openral_perception.detectors.buffers import BufferDetector
 from openral_perception.detectors.factory import ObjectsParams, ObjectsSettings, objects_settings
 from openral_perception.detectors.rtdetr import identify_rtdetr_outputs, model_input, postprocess_rtdetr
 from openral_perception.detectors.tier import DetectorTier, require_runnable
@@ -30,7 +30,7 @@ except ImportError as exc:
     raise ROSDependencyMissing("onnxruntime", extra="policy", needed_for="the ONNX object detector") from exc
 
 
-class ObjectsDetector:
+class ObjectsDetector(BufferDetector[ObjectsMetadata]):
     """An :class:`~openral_perception.detectors.base.EventDetector` running an ONNX model on the CPU.
 
     Args:
@@ -114,26 +114,8 @@ class ObjectsDetector:
             resize=settings.resize,
         )
 
-    @overload
-    def detect(self, frame_bgr: DetectorFrame) -> ObjectsMetadata | None: ...
-
-    @overload
-    def detect(self, frame_bgr: FrameBuffer, width: int, height: int, sensor_id: str) -> ObjectsMetadata | None: ...
-
-    def detect(
-        self,
-        frame_bgr: FrameBuffer | DetectorFrame,
-        width: int | None = None,
-        height: int | None = None,
-        sensor_id: str | None = None,
-    ) -> ObjectsMetadata | None:
-        """The objects in a frame, boxes in its pixels: a ``DetectorFrame`` alone, or a BGR buffer and its size.
-
-        Raises:
-            ValueError: A buffer whose size is not ``width`` × ``height`` (see
-                :func:`~openral_perception.detectors.buffers.buffer_frame`).
-        """
-        frame = call_frame(frame_bgr, width, height, sensor_id)
+    def detect_frame(self, frame: DetectorFrame) -> ObjectsMetadata | None:
+        """The objects in ``frame``, boxes in its pixels (``detect`` also takes a BGR buffer and its size)."""
         tensor, content = model_input(frame.rgb, self.input_size, self.resize)
         logits, boxes = self._session.run([self._logits, self._boxes], {self._input: tensor})
         return postprocess_rtdetr(
