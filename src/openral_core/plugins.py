@@ -10,7 +10,7 @@ from __future__ import annotations
 import difflib
 from collections.abc import Iterator, Mapping
 from importlib.metadata import EntryPoint, entry_points
-from typing import Any
+from typing import Any, TypeVar
 
 from openral_core.errors import ROSConfigError
 
@@ -21,9 +21,11 @@ SAFETY_CLIENTS_GROUP = "openral.safety_clients"
 ROBOTS_GROUP = "openral.robots"
 OBSERVERS_GROUP = "openral.observers"
 
+T = TypeVar("T")
 
-class PluginRegistry(Mapping[str, Any]):
-    """A read-only ``name -> plugin object`` view over one entry-point group.
+
+class PluginRegistry(Mapping[str, T]):
+    """A read-only ``name -> plugin object`` view over one entry-point group, typed by what the group holds.
 
     Names are read once at construction; each object is loaded on first lookup and cached.
     Looking up an unknown name raises ``ROSConfigError`` listing the known names and the
@@ -40,15 +42,15 @@ class PluginRegistry(Mapping[str, Any]):
         self.kind = kind
         self.field = field
         self._entry_points: dict[str, EntryPoint] = {ep.name: ep for ep in entry_points(group=group)}
-        self._loaded: dict[str, Any] = {}
+        self._loaded: dict[str, T] = {}
 
-    def __getitem__(self, name: str) -> Any:
+    def __getitem__(self, name: str) -> T:
         if name in self._loaded:
             return self._loaded[name]
         entry = self._entry_points.get(name)
         if entry is None:
             raise self.unknown(name)
-        obj = entry.load()
+        obj: T = entry.load()
         self._loaded[name] = obj
         return obj
 
@@ -65,7 +67,7 @@ class PluginRegistry(Mapping[str, Any]):
     def __contains__(self, name: object) -> bool:
         return name in self._entry_points
 
-    def resolve(self, name: str, *, field: str | None = None) -> Any:
+    def resolve(self, name: str, *, field: str | None = None) -> T:
         """Like ``registry[name]``, but an unknown name's error names ``field`` (e.g. ``sensors[2].backend``)."""
         if name not in self._entry_points:
             raise self.unknown(name, field=field)

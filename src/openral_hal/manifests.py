@@ -23,7 +23,7 @@ from openral_core.robot import RobotManifest
 
 MANIFEST_FILE = "robot.yaml"
 
-ROBOT_REGISTRY = PluginRegistry(ROBOTS_GROUP, kind="robot", field="hal.robot_id")
+ROBOT_REGISTRY: PluginRegistry[Any] = PluginRegistry(ROBOTS_GROUP, kind="robot", field="hal.robot_id")
 """Robot id → its manifest (a path to ``robot.yaml`` or a ``RobotManifest``)."""
 
 

@@ -38,22 +38,26 @@ from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
 
-SKILL_REGISTRY = PluginRegistry(SKILLS_GROUP, kind="skill", field="vla.id")
+SKILL_REGISTRY: PluginRegistry[Any] = PluginRegistry(SKILLS_GROUP, kind="skill", field="vla.id")
 """Skill id → skill class (``Cls.from_config(params, robot=..., rate_hz=...)``)."""
 
-SENSOR_BACKEND_REGISTRY = PluginRegistry(SENSOR_BACKENDS_GROUP, kind="sensor backend", field="sensors[].backend")
+SENSOR_BACKEND_REGISTRY: PluginRegistry[Any] = PluginRegistry(
+    SENSOR_BACKENDS_GROUP, kind="sensor backend", field="sensors[].backend"
+)
 """Backend id → reader class (``Cls.from_config(config, hal=..., robot=..., base_dir=...)``).
 
 ``base_dir`` is the deployment file's directory: relative device paths resolve against it.
 """
 
-HAL_REGISTRY = PluginRegistry(HALS_GROUP, kind="HAL adapter", field="hal.adapter")
+HAL_REGISTRY: PluginRegistry[Any] = PluginRegistry(HALS_GROUP, kind="HAL adapter", field="hal.adapter")
 """Adapter id → HAL class (``Cls(manifest, params)``)."""
 
-SAFETY_CLIENT_REGISTRY = PluginRegistry(SAFETY_CLIENTS_GROUP, kind="safety client", field="safety.client")
+SAFETY_CLIENT_REGISTRY: PluginRegistry[Any] = PluginRegistry(
+    SAFETY_CLIENTS_GROUP, kind="safety client", field="safety.client"
+)
 """Client id → safety client class (``Cls.from_config(config, robot=..., rate_hz=...)``)."""
 
-OBSERVER_REGISTRY = PluginRegistry(OBSERVERS_GROUP, kind="observer", field="observers[].id")
+OBSERVER_REGISTRY: PluginRegistry[Any] = PluginRegistry(OBSERVERS_GROUP, kind="observer", field="observers[].id")
 """Observer id → observer class (``Cls.from_config(params, robot=..., env=..., base_dir=...)``)."""
 
 _SKILL_PARAMS = ("vla.params", "params")

@@ -131,7 +131,7 @@ class SimEnvPlugin(Protocol):
         ...
 
 
-SIM_ENV_REGISTRY = PluginRegistry(SIM_ENVS_GROUP, kind="simulation environment", field="env")
+SIM_ENV_REGISTRY: PluginRegistry[Any] = PluginRegistry(SIM_ENVS_GROUP, kind="simulation environment", field="env")
 
 
 def make_env(scene: SimEnvironment) -> SimEnv:

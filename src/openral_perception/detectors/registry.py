@@ -7,7 +7,7 @@ as a third party registers its own; a kind's module is imported only when a depl
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 from openral_core import ROSConfigError
 from openral_core.plugins import PluginRegistry
@@ -16,7 +16,7 @@ from openral_perception.params import DetectorEntry
 
 DETECTORS_GROUP: Final = "openral.detectors"
 
-DETECTOR_REGISTRY = PluginRegistry(DETECTORS_GROUP, kind="detector", field="detectors[].kind")
+DETECTOR_REGISTRY: PluginRegistry[Any] = PluginRegistry(DETECTORS_GROUP, kind="detector", field="detectors[].kind")
 """``kind -> detector class``; an unknown kind is a ``ROSConfigError`` listing the known ones."""
 
 
