@@ -1,9 +1,17 @@
-"""What a runner reports: one ``TickResult`` per tick, one ``RunResult`` per run."""
+"""What a runner reports: one ``TickResult`` per tick, one ``RunResult`` per run.
+
+Each ``TickResult`` field says, in its annotation, where else it is rendered: a
+:class:`SpanAttribute` names its attribute on the ``rskill.tick`` span, a :class:`DatasetColumn`
+gives its recorded column. The telemetry table (``openral_observability.semconv.TICK_ATTRIBUTES``),
+the dataset's ``openral.*`` columns (``openral_dataset.schema``) and the runner's ``TickContext``
+are derived from them, so a new tick field is one line here.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
+from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -52,6 +60,34 @@ class StopReason(StrEnum):
     SIGTERM = "signal:SIGTERM"
 
 
+@dataclass(frozen=True)
+class SpanAttribute:
+    """A ``TickResult`` field's attribute on the ``rskill.tick`` span (how it is rendered follows from its type).
+
+    The spec's ``skill.<field>`` where the spec names the fact; otherwise ``openral.tick.*``, or
+    ``openral.takeover.*`` for what a takeover skill adds. A field without one stays off the span.
+    """
+
+    name: str
+
+
+ColumnType = Literal["int64", "float32", "bool", "string", "actions"]
+"""A recorded column's dtype; ``actions``: one float32 per action name."""
+
+
+@dataclass(frozen=True)
+class DatasetColumn:
+    """A ``TickResult`` field recorded as it is, one dataset column per tick (``None`` is the column's absent value).
+
+    The column is ``openral.<field>`` unless ``name`` gives another (kept for datasets already recorded).
+    ``takeover``: recorded only by a deployment with a takeover skill. A field without one is not a column.
+    """
+
+    dtype: ColumnType
+    name: str | None = None
+    takeover: bool = False
+
+
 _FAULTS = frozenset(
     {
         WithheldReason.STALE_SENSOR,
@@ -69,9 +105,9 @@ class TickResult(BaseModel):
 
     The runner builds it once per tick (``TickContext``); the tick span's attributes, the Foxglove
     message and its JSON Schema, the ROS 2 bag record and the dataset's ``openral.*`` columns are
-    rendered from its fields, with the telemetry name of each field in
-    ``openral_observability.semconv.TICK_ATTRIBUTES``. A field added here reaches the Foxglove
-    view and the bag record with no other edit.
+    rendered from its fields. A field's span attribute and dataset column are declared beside it
+    (:class:`SpanAttribute`, :class:`DatasetColumn`): a field added here, with them, reaches every
+    renderer with no other edit.
 
     Phase timings are milliseconds on the runner's clock. The optional fields are ``None`` when
     they do not apply, so ``model_dump(exclude_none=True)`` carries only what the tick had:
@@ -98,32 +134,40 @@ class TickResult(BaseModel):
 
     model_config = ConfigDict(extra="forbid", ser_json_inf_nan="constants")
 
-    tick_idx: int = Field(ge=0)
-    start_ns: int = 0
-    tick_ms: float = 0.0
-    sensors_ms: float = 0.0
-    world_state_ms: float = 0.0
-    inference_ms: float = 0.0
-    safety_ms: float = 0.0
-    hal_ms: float = 0.0
-    action_applied: bool = False
-    withheld_reason: WithheldReason | None = None
-    safety_violations: list[str] = Field(default_factory=list)
-    stale_sensors: list[str] = Field(default_factory=list)
+    tick_idx: Annotated[int, SpanAttribute("openral.tick.idx"), DatasetColumn("int64")] = Field(ge=0)
+    start_ns: Annotated[int, DatasetColumn("int64", name="openral.tick_start_ns")] = 0
+    tick_ms: Annotated[float, SpanAttribute("skill.tick_ms")] = 0.0
+    sensors_ms: Annotated[float, SpanAttribute("skill.sensors_ms")] = 0.0
+    world_state_ms: Annotated[float, SpanAttribute("skill.world_state_ms")] = 0.0
+    inference_ms: Annotated[float, SpanAttribute("skill.inference_ms")] = 0.0
+    safety_ms: Annotated[float, SpanAttribute("skill.safety_ms")] = 0.0
+    hal_ms: Annotated[float, SpanAttribute("skill.hal_ms")] = 0.0
+    lateness_ms: Annotated[float, SpanAttribute("openral.tick.lateness_ms"), DatasetColumn("float32")] = 0.0
     deadline_missed: bool = False
-    lateness_ms: float = 0.0
-    requested_action: list[float] | None = None
+    action_applied: Annotated[bool, SpanAttribute("skill.action_applied"), DatasetColumn("bool")] = False
+    withheld_reason: Annotated[
+        WithheldReason | None, SpanAttribute("skill.withheld_reason"), DatasetColumn("string")
+    ] = None
+    safety_violations: Annotated[list[str], SpanAttribute("skill.safety_violations")] = Field(default_factory=list)
+    stale_sensors: list[str] = Field(default_factory=list)
+    requested_action: Annotated[list[float] | None, DatasetColumn("actions")] = None
     sent_action: list[float] | None = None
     trace_context: str | None = None
-    step_idx: int | None = Field(default=None, ge=0)
-    episode_idx: int | None = Field(default=None, ge=0)
-    reward: float | None = None
-    terminated: bool | None = None
-    truncated: bool | None = None
-    intervention: bool | None = None
-    active_skill: str | None = None
-    policy_action: list[float] | None = None
-    handover_ramp: bool | None = None
+    step_idx: Annotated[int | None, SpanAttribute("skill.step_idx")] = Field(default=None, ge=0)
+    episode_idx: Annotated[int | None, SpanAttribute("skill.episode_idx")] = Field(default=None, ge=0)
+    reward: Annotated[float | None, SpanAttribute("skill.reward")] = None
+    terminated: Annotated[bool | None, SpanAttribute("skill.terminated")] = None
+    truncated: Annotated[bool | None, SpanAttribute("skill.truncated")] = None
+    intervention: Annotated[
+        bool | None, SpanAttribute("openral.takeover.intervention"), DatasetColumn("bool", takeover=True)
+    ] = None
+    active_skill: Annotated[
+        str | None, SpanAttribute("openral.takeover.active_skill"), DatasetColumn("string", takeover=True)
+    ] = None
+    policy_action: Annotated[list[float] | None, DatasetColumn("actions", takeover=True)] = None
+    handover_ramp: Annotated[
+        bool | None, SpanAttribute("openral.takeover.ramp"), DatasetColumn("bool", takeover=True)
+    ] = None
 
     @classmethod
     def trusted(cls, values: dict[str, Any]) -> TickResult:
@@ -145,6 +189,20 @@ class TickResult(BaseModel):
 _ALL_TICK_FIELDS = frozenset(TickResult.model_fields)
 _new = object.__new__
 _set = object.__setattr__
+
+_Marker = TypeVar("_Marker", SpanAttribute, DatasetColumn)
+
+
+def tick_fields_with(marker: type[_Marker]) -> dict[str, _Marker]:
+    """Each ``TickResult`` field annotated with a ``marker``, in field order, with it."""
+    out: dict[str, _Marker] = {}
+    for name, info in TickResult.model_fields.items():
+        found = [item for item in info.metadata if isinstance(item, marker)]
+        if len(found) > 1:
+            raise TypeError(f"TickResult.{name} has {len(found)} {marker.__name__} annotations, expected at most one")
+        if found:
+            out[name] = found[0]
+    return out
 
 
 class RunResult(BaseModel):

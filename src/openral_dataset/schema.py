@@ -4,6 +4,10 @@ LeRobot's loader reads ``observation.state``, ``action``, one ``observation.imag
 camera and the five default columns (``timestamp``, ``frame_index``, ``episode_index``, ``index``,
 ``task_index``, last). Everything else is prefixed ``openral.``: no key starting ``observation`` or
 ``action`` (those become policy inputs and outputs), no ``/`` in a key.
+
+A column that mirrors a ``TickResult`` field is declared on that field (its ``DatasetColumn``) and
+named ``openral.<field>``; the one exception, ``openral.tick_start_ns`` for ``start_ns``, is the
+name datasets were recorded with. A camera's columns are ``openral.<camera>.<what>``.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Final, NamedTuple
 
 from openral_core import ROSDependencyMissing
+from openral_core.results import DatasetColumn, tick_fields_with
 
 try:
     import pyarrow as pa
@@ -26,18 +31,6 @@ ACTION: Final = "action"
 IMAGE_PREFIX: Final = "observation.images."
 DEFAULT_COLUMNS: Final = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 
-TICK_IDX: Final = "openral.tick_idx"
-TICK_START_NS: Final = "openral.tick_start_ns"
-LATENESS_MS: Final = "openral.lateness_ms"
-ACTION_APPLIED: Final = "openral.action_applied"
-WITHHELD_REASON: Final = "openral.withheld_reason"
-REQUESTED_ACTION: Final = "openral.requested_action"
-INTERVENTION: Final = "openral.intervention"
-ACTIVE_SKILL: Final = "openral.active_skill"
-POLICY_ACTION: Final = "openral.policy_action"
-HANDOVER_RAMP: Final = "openral.handover_ramp"
-TRACE_ID: Final = "openral.trace_id"
-SPAN_ID: Final = "openral.span_id"
 ACTIONS: Final = "actions"
 """The dtype of a :data:`TICK_COLUMNS` column holding one float32 per action name."""
 
@@ -50,26 +43,36 @@ class TickColumn(NamedTuple):
     dtype: str
 
 
-TICK_COLUMNS: Final = (
-    TickColumn("tick_idx", TICK_IDX, "int64"),
-    TickColumn("start_ns", TICK_START_NS, "int64"),
-    TickColumn("lateness_ms", LATENESS_MS, "float32"),
-    TickColumn("action_applied", ACTION_APPLIED, "bool"),
-    TickColumn("withheld_reason", WITHHELD_REASON, "string"),
-    TickColumn("requested_action", REQUESTED_ACTION, ACTIONS),
-)
-"""The ``openral.*`` columns that mirror ``TickResult`` fields, in column order; the trace and span id
+def _declared_columns(*, takeover: bool) -> tuple[TickColumn, ...]:
+    return tuple(
+        TickColumn(name, declared.name or f"openral.{name}", declared.dtype)
+        for name, declared in tick_fields_with(DatasetColumn).items()
+        if declared.takeover is takeover
+    )
+
+
+TICK_COLUMNS: Final = _declared_columns(takeover=False)
+"""The ``openral.*`` columns that mirror ``TickResult`` fields, in field order; the trace and span id
 (:data:`TRACE_ID`, :data:`SPAN_ID`) follow them, taken from its ``trace_context``."""
 
-TAKEOVER_COLUMNS: Final = (
-    TickColumn("intervention", INTERVENTION, "bool"),
-    TickColumn("active_skill", ACTIVE_SKILL, "string"),
-    TickColumn("policy_action", POLICY_ACTION, ACTIONS),
-    TickColumn("handover_ramp", HANDOVER_RAMP, "bool"),
-)
+TAKEOVER_COLUMNS: Final = _declared_columns(takeover=True)
 """The columns of a deployment with a takeover skill, after :data:`TICK_COLUMNS`: which ticks a person drove,
 whose action each row is, what the policy proposed (DAgger labels: ``NaN`` where it proposed nothing), and
 which commands were limited to one envelope step just after control passed."""
+
+_COLUMN_OF: Final = {c.tick_field: c.column for c in (*TICK_COLUMNS, *TAKEOVER_COLUMNS)}
+TICK_IDX: Final = _COLUMN_OF["tick_idx"]
+TICK_START_NS: Final = _COLUMN_OF["start_ns"]
+LATENESS_MS: Final = _COLUMN_OF["lateness_ms"]
+ACTION_APPLIED: Final = _COLUMN_OF["action_applied"]
+WITHHELD_REASON: Final = _COLUMN_OF["withheld_reason"]
+REQUESTED_ACTION: Final = _COLUMN_OF["requested_action"]
+INTERVENTION: Final = _COLUMN_OF["intervention"]
+ACTIVE_SKILL: Final = _COLUMN_OF["active_skill"]
+POLICY_ACTION: Final = _COLUMN_OF["policy_action"]
+HANDOVER_RAMP: Final = _COLUMN_OF["handover_ramp"]
+TRACE_ID: Final = "openral.trace_id"
+SPAN_ID: Final = "openral.span_id"
 
 
 def tick_columns(*, takeover: bool) -> tuple[TickColumn, ...]:

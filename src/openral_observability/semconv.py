@@ -2,7 +2,9 @@
 
 The names the spec gives (``rskill.*``, ``skill.*``, ``safety.*``) are kept as it gives them;
 every other name is ``openral.<layer>.*``. Durations are histograms in milliseconds; counters
-count events. :data:`TICK_ATTRIBUTES` says which ``TickResult`` field each tick attribute renders.
+count events. A tick attribute is declared on the ``TickResult`` field it renders (its
+``SpanAttribute``); :data:`TICK_ATTRIBUTES` and the ``ATTR_*`` constants of tick fields are read
+off those declarations.
 
 The span tree of one tick::
 
@@ -21,6 +23,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Final
+
+from openral_core.results import SpanAttribute, tick_fields_with
 
 TRACER_NAME: Final = "openral"
 METER_NAME: Final = "openral"
@@ -41,58 +45,39 @@ SPAN_SENSORS_THUMBNAIL: Final = "sensors.thumbnail"
 SPAN_SENSORS_READ_SYNCED: Final = "sensors.read_synced"
 
 # Tick attributes
-ATTR_TICK_IDX: Final = "openral.tick.idx"
-ATTR_SKILL_ID: Final = "skill.id"
-ATTR_TICK_MS: Final = "skill.tick_ms"
-ATTR_SENSORS_MS: Final = "skill.sensors_ms"
-ATTR_WORLD_STATE_MS: Final = "skill.world_state_ms"
-ATTR_INFERENCE_MS: Final = "skill.inference_ms"
-ATTR_SAFETY_MS: Final = "skill.safety_ms"
-ATTR_HAL_MS: Final = "skill.hal_ms"
-ATTR_ACTION_APPLIED: Final = "skill.action_applied"
-ATTR_WITHHELD_REASON: Final = "skill.withheld_reason"
-ATTR_SAFETY_VIOLATIONS: Final = "skill.safety_violations"
-ATTR_LATENESS_MS: Final = "openral.tick.lateness_ms"
-ATTR_DEADLINE_POLICY: Final = "openral.tick.deadline_policy"
-ATTR_STEP_IDX: Final = "skill.step_idx"
-ATTR_EPISODE_IDX: Final = "skill.episode_idx"
-ATTR_REWARD: Final = "skill.reward"
-ATTR_TERMINATED: Final = "skill.terminated"
-ATTR_TRUNCATED: Final = "skill.truncated"
-ATTR_TAKEOVER_INTERVENTION: Final = "openral.takeover.intervention"
-ATTR_TAKEOVER_ACTIVE_SKILL: Final = "openral.takeover.active_skill"
-ATTR_TAKEOVER_RAMP: Final = "openral.takeover.ramp"
-
 TICK_ATTRIBUTES: Final[Mapping[str, str]] = MappingProxyType(
-    {
-        "tick_idx": ATTR_TICK_IDX,
-        "tick_ms": ATTR_TICK_MS,
-        "sensors_ms": ATTR_SENSORS_MS,
-        "world_state_ms": ATTR_WORLD_STATE_MS,
-        "inference_ms": ATTR_INFERENCE_MS,
-        "safety_ms": ATTR_SAFETY_MS,
-        "hal_ms": ATTR_HAL_MS,
-        "action_applied": ATTR_ACTION_APPLIED,
-        "withheld_reason": ATTR_WITHHELD_REASON,
-        "safety_violations": ATTR_SAFETY_VIOLATIONS,
-        "lateness_ms": ATTR_LATENESS_MS,
-        "step_idx": ATTR_STEP_IDX,
-        "episode_idx": ATTR_EPISODE_IDX,
-        "reward": ATTR_REWARD,
-        "terminated": ATTR_TERMINATED,
-        "truncated": ATTR_TRUNCATED,
-        "intervention": ATTR_TAKEOVER_INTERVENTION,
-        "active_skill": ATTR_TAKEOVER_ACTIVE_SKILL,
-        "handover_ramp": ATTR_TAKEOVER_RAMP,
-    }
+    {name: attribute.name for name, attribute in tick_fields_with(SpanAttribute).items()}
 )
-"""``TickResult`` field → its ``rskill.tick`` span attribute: the one place a tick field's telemetry name is given.
+"""``TickResult`` field → its ``rskill.tick`` span attribute, read off the field's :class:`SpanAttribute`.
 
-A field absent here stays off the span (``start_ns`` and ``trace_context`` are the span's own
+A field without one stays off the span (``start_ns`` and ``trace_context`` are the span's own
 start and context; the actions, stale sensors and the deadline flag are carried by the safety and
 sensor spans and by the lateness attribute). How a value is rendered follows from the field's type
 (:mod:`openral_runner.tick_span`): a list as its length, an optional field only when set.
 """
+ATTR_TICK_IDX: Final = TICK_ATTRIBUTES["tick_idx"]
+ATTR_TICK_MS: Final = TICK_ATTRIBUTES["tick_ms"]
+ATTR_SENSORS_MS: Final = TICK_ATTRIBUTES["sensors_ms"]
+ATTR_WORLD_STATE_MS: Final = TICK_ATTRIBUTES["world_state_ms"]
+ATTR_INFERENCE_MS: Final = TICK_ATTRIBUTES["inference_ms"]
+ATTR_SAFETY_MS: Final = TICK_ATTRIBUTES["safety_ms"]
+ATTR_HAL_MS: Final = TICK_ATTRIBUTES["hal_ms"]
+ATTR_ACTION_APPLIED: Final = TICK_ATTRIBUTES["action_applied"]
+ATTR_WITHHELD_REASON: Final = TICK_ATTRIBUTES["withheld_reason"]
+ATTR_SAFETY_VIOLATIONS: Final = TICK_ATTRIBUTES["safety_violations"]
+ATTR_LATENESS_MS: Final = TICK_ATTRIBUTES["lateness_ms"]
+ATTR_STEP_IDX: Final = TICK_ATTRIBUTES["step_idx"]
+ATTR_EPISODE_IDX: Final = TICK_ATTRIBUTES["episode_idx"]
+ATTR_REWARD: Final = TICK_ATTRIBUTES["reward"]
+ATTR_TERMINATED: Final = TICK_ATTRIBUTES["terminated"]
+ATTR_TRUNCATED: Final = TICK_ATTRIBUTES["truncated"]
+ATTR_TAKEOVER_INTERVENTION: Final = TICK_ATTRIBUTES["intervention"]
+ATTR_TAKEOVER_ACTIVE_SKILL: Final = TICK_ATTRIBUTES["active_skill"]
+ATTR_TAKEOVER_RAMP: Final = TICK_ATTRIBUTES["handover_ramp"]
+ATTR_SKILL_ID: Final = "skill.id"
+"""The skill (or runner) a tick, metric or error belongs to: the runner's metric label, not a tick field."""
+ATTR_DEADLINE_POLICY: Final = "openral.tick.deadline_policy"
+"""The overrun policy, on the deadline-missed event: configuration, not a tick field."""
 
 # Other attributes
 ATTR_SENSOR_ID: Final = "openral.sensor.id"
@@ -216,6 +201,20 @@ METRIC_PERCEPTION_EVENTS: Final = "openral.perception.events"
 """Events published, by kind (counter)."""
 METRIC_PERCEPTION_DROPPED: Final = "openral.perception.dropped_frames"
 """Frames a detector never looked at: rate-limited (by kind) or superseded by a newer one (counter)."""
+
+# The world around the robot as a picture (openral_perception.world_cloud)
+SPAN_WORLD_CLOUD: Final = "openral.world_cloud"
+"""One picture of the point cloud around the base, its figures as attributes (a span with no children)."""
+ATTR_WORLD_CLOUD_FRAME_ID: Final = "openral.world_cloud.frame_id"
+ATTR_WORLD_CLOUD_SOURCE_NODE: Final = "openral.world_cloud.source_node"
+ATTR_WORLD_CLOUD_POINTS_TOTAL: Final = "openral.world_cloud.points_total"
+ATTR_WORLD_CLOUD_POINTS_IN_BOX: Final = "openral.world_cloud.points_in_box"
+ATTR_WORLD_CLOUD_NEAREST_M: Final = "openral.world_cloud.nearest_m"
+"""Distance of the nearest point in the box (-1 when the box is empty)."""
+ATTR_WORLD_CLOUD_RANGE_MAX_M: Final = "openral.world_cloud.range_max_m"
+ATTR_WORLD_CLOUD_BOX_XY_M: Final = "openral.world_cloud.box_xy_m"
+ATTR_WORLD_CLOUD_BOX_Z_M: Final = "openral.world_cloud.box_z_m"
+ATTR_WORLD_CLOUD_PNG_BASE64: Final = "openral.world_cloud.png_base64"
 
 # Log records (structlog → OpenTelemetry): the keys that carry the current span's ids
 LOG_TRACE_ID: Final = "trace_id"

@@ -19,10 +19,9 @@ from typing import Any, Final
 import numpy as np
 from PIL import Image
 
-from openral_observability import tracer
+from openral_observability import semconv, tracer
 
 WORLD_CLOUD_TOPIC_DEFAULT: Final = "/octomap_point_cloud_centers"
-SPAN_WORLD_CLOUD: Final = "openral.world_cloud"
 
 _WARM = np.array([230.0, 60.0, 30.0])
 _MID = np.array([240.0, 220.0, 60.0])
@@ -123,15 +122,15 @@ def world_cloud_span_attributes(
     cloud = crop_points_to_box(points_base, xy_m=xy_m, z_min=z_min, z_max=z_max)
     distances = np.linalg.norm(cloud, axis=1) if len(cloud) else np.zeros(0)
     return {
-        "openral.world_cloud.frame_id": frame_id,
-        "openral.world_cloud.source_node": source_node,
-        "openral.world_cloud.points_total": int(np.asarray(points_base).reshape(-1, 3).shape[0]),
-        "openral.world_cloud.points_in_box": len(cloud),
-        "openral.world_cloud.nearest_m": float(distances.min()) if len(distances) else -1.0,
-        "openral.world_cloud.range_max_m": range_max_m,
-        "openral.world_cloud.box_xy_m": xy_m,
-        "openral.world_cloud.box_z_m": [z_min, z_max],
-        "openral.world_cloud.png_base64": encode_world_cloud_png(
+        semconv.ATTR_WORLD_CLOUD_FRAME_ID: frame_id,
+        semconv.ATTR_WORLD_CLOUD_SOURCE_NODE: source_node,
+        semconv.ATTR_WORLD_CLOUD_POINTS_TOTAL: int(np.asarray(points_base).reshape(-1, 3).shape[0]),
+        semconv.ATTR_WORLD_CLOUD_POINTS_IN_BOX: len(cloud),
+        semconv.ATTR_WORLD_CLOUD_NEAREST_M: float(distances.min()) if len(distances) else -1.0,
+        semconv.ATTR_WORLD_CLOUD_RANGE_MAX_M: range_max_m,
+        semconv.ATTR_WORLD_CLOUD_BOX_XY_M: xy_m,
+        semconv.ATTR_WORLD_CLOUD_BOX_Z_M: [z_min, z_max],
+        semconv.ATTR_WORLD_CLOUD_PNG_BASE64: encode_world_cloud_png(
             cloud, range_max_m=range_max_m, xy_m=xy_m, z_min=z_min, z_max=z_max
         ),
     }
@@ -197,7 +196,7 @@ class WorldCloudBridge:
         attributes = world_cloud_span_attributes(
             points_base=points_base, frame_id=self.target_frame, source_node=self.node.get_name(), **self.settings
         )
-        tracer().start_span(SPAN_WORLD_CLOUD, attributes=attributes).end()
+        tracer().start_span(semconv.SPAN_WORLD_CLOUD, attributes=attributes).end()
 
     def destroy(self) -> None:
         """Release the subscription. Idempotent."""

@@ -9,13 +9,15 @@ The result is read off ``TickResult.model_fields``: a context attribute named li
 is that field's value; ``start_ns``, ``withheld_reason`` and ``deadline_missed`` are derived here,
 ``tick_ms`` and ``trace_context`` are measured by the base at the end, and a field the context does
 not carry takes its default. Adding a field to ``TickResult`` needs no edit here until a phase has a
-value for it (then it becomes an attribute of the context, of the same name).
+value for it (then it becomes an attribute of the context, of the same name and type: the phases
+assign it, so it is written out for the type checker, and importing this module refuses a context
+attribute whose type differs from its field's).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Final
+from typing import Final, get_type_hints
 
 from pydantic.fields import FieldInfo
 
@@ -79,22 +81,30 @@ class TickContext:
         return TickResult.trusted(values)
 
 
-def _split() -> tuple[tuple[str, ...], tuple[tuple[str, FieldInfo], ...]]:
-    """The context's own attributes (not result fields), and the result fields it does not carry.
+def _split(context: type[TickContext]) -> tuple[tuple[str, ...], tuple[tuple[str, FieldInfo], ...]]:
+    """The ``context``'s own attributes (not result fields), and the result fields it does not carry.
 
     Raises:
-        TypeError: A required ``TickResult`` field has no value here (there is no default to take).
+        TypeError: A required ``TickResult`` field has no value here (there is no default to take),
+            a field built here is also an attribute, or an attribute's type is not its field's.
     """
-    carried = [f.name for f in fields(TickContext)]
+    carried = [f.name for f in fields(context)]
+    hints = get_type_hints(context)
+    for name in carried:
+        info = TickResult.model_fields.get(name)
+        if name in _BUILT_HERE:
+            raise TypeError(f"TickResult.{name} is built by TickContext.result(), not carried as an attribute")
+        if info is not None and hints[name] != info.annotation:
+            raise TypeError(f"{context.__name__}.{name} is {hints[name]}, but TickResult.{name} is {info.annotation}")
     own = tuple(name for name in carried if name not in TickResult.model_fields)
     defaulted = []
     for name, info in TickResult.model_fields.items():
         if name in carried or name in _BUILT_HERE:
             continue
         if info.is_required():
-            raise TypeError(f"TickResult.{name} is required, but TickContext has no {name}")
+            raise TypeError(f"TickResult.{name} is required, but {context.__name__} has no {name}")
         defaulted.append((name, info))
     return own, tuple(defaulted)
 
 
-_CONTEXT_ONLY, _DEFAULTED = _split()
+_CONTEXT_ONLY, _DEFAULTED = _split(TickContext)

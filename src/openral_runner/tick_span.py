@@ -1,7 +1,8 @@
 """The attributes of a recorded ``rskill.tick`` span, rendered from the tick's result.
 
-Which fields reach the span, and under which names, is :data:`openral_observability.semconv.TICK_ATTRIBUTES`;
-how each is rendered follows from its ``TickResult`` type, worked out once at import:
+Which fields reach the span, and under which names, is each field's ``SpanAttribute`` (read into
+:data:`openral_observability.semconv.TICK_ATTRIBUTES`); how each is rendered follows from its
+``TickResult`` type, worked out once at import:
 
 - a list becomes its length (``skill.safety_violations`` counts the violations);
 - an optional field (default ``None``) is set only when the tick has a value, so a zero reward is

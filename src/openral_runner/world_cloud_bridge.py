@@ -1,7 +1,7 @@
 """The world-cloud picture at its specification path; it lives in :mod:`openral_perception.world_cloud`."""
 
+from openral_observability.semconv import SPAN_WORLD_CLOUD
 from openral_perception.world_cloud import (
-    SPAN_WORLD_CLOUD,
     WORLD_CLOUD_TOPIC_DEFAULT,
     WorldCloudBridge,
     crop_points_to_box,

@@ -12,6 +12,7 @@ import pytest
 from PIL import Image
 
 from openral_core import ROSDependencyMissing
+from openral_observability import semconv
 from openral_perception.world_cloud import (
     WorldCloudBridge,
     crop_points_to_box,
@@ -114,8 +115,6 @@ def test_the_bridge_records_a_picture_of_a_published_cloud(telemetry):
     from std_msgs.msg import Header  # noqa: PLC0415
     from tf2_ros import StaticTransformBroadcaster  # noqa: PLC0415
 
-    from openral_perception.world_cloud import SPAN_WORLD_CLOUD  # noqa: PLC0415
-
     rclpy.init()
     node = rclpy.create_node("world_cloud_test")
     try:
@@ -136,9 +135,9 @@ def test_the_bridge_records_a_picture_of_a_published_cloud(telemetry):
         for _ in range(50):
             publisher.publish(cloud)
             executor.spin_once(timeout_sec=0.1)
-            if telemetry.spans(SPAN_WORLD_CLOUD):
+            if telemetry.spans(semconv.SPAN_WORLD_CLOUD):
                 break
-        (span, *_rest) = telemetry.spans(SPAN_WORLD_CLOUD)
+        (span, *_rest) = telemetry.spans(semconv.SPAN_WORLD_CLOUD)
         assert span.attributes["openral.world_cloud.points_in_box"] == 2
         bridge.destroy()
     finally:
