@@ -2,9 +2,10 @@
 
 Each ``TickResult`` field says, in its annotation, where else it is rendered: a
 :class:`SpanAttribute` names its attribute on the ``rskill.tick`` span, a :class:`DatasetColumn`
-gives its recorded column. The telemetry table (``openral_observability.semconv.TICK_ATTRIBUTES``),
-the dataset's ``openral.*`` columns (``openral_dataset.schema``) and the runner's ``TickContext``
-are derived from them, so a new tick field is one line here.
+gives its recorded column. The telemetry table (``openral_observability.semconv.TICK_ATTRIBUTES``)
+and the dataset's ``openral.*`` columns (``openral_dataset.schema``) are read off them, so a new
+tick field is one line here; the runner's ``TickContext`` carries it, under its name and type, once
+a phase has a value for it.
 """
 
 from __future__ import annotations
