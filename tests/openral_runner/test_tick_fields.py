@@ -59,30 +59,28 @@ def test_the_tick_columns_are_the_fields_declarations_and_nothing_else() -> None
     assert by_hand == {schema.TRACE_ID, schema.SPAN_ID, *camera_columns}, "a column not declared on its field"
 
 
-def test_the_recorded_columns_keep_the_names_and_order_datasets_were_recorded_with() -> None:
-    # A recording resumes only if its features are this recording's: a renamed or moved column would refuse it.
+def test_the_recorded_columns_keep_the_names_order_and_dtypes_datasets_were_recorded_with() -> None:
+    # A recording resumes only if its features are this recording's: a renamed, retyped or moved column would refuse it.
+    def scalar(dtype: str) -> dict[str, object]:
+        return {"dtype": dtype, "shape": [1], "names": None}
+
+    actions = {"dtype": "float32", "shape": [2], "names": ["a", "b"]}
+    recorded_before = {
+        "openral.tick_idx": scalar("int64"),
+        "openral.tick_start_ns": scalar("int64"),
+        "openral.lateness_ms": scalar("float32"),
+        "openral.action_applied": scalar("bool"),
+        "openral.withheld_reason": scalar("string"),
+        "openral.requested_action": actions,
+        "openral.intervention": scalar("bool"),
+        "openral.active_skill": scalar("string"),
+        "openral.policy_action": actions,
+        "openral.handover_ramp": scalar("bool"),
+        "openral.trace_id": scalar("string"),
+        "openral.span_id": scalar("string"),
+    }
     block = schema.features(["a", "b"], [], fps=10, vcodec="h264", takeover=True)
-    assert [key for key in block if key.startswith("openral.")] == [
-        "openral.tick_idx",
-        "openral.tick_start_ns",
-        "openral.lateness_ms",
-        "openral.action_applied",
-        "openral.withheld_reason",
-        "openral.requested_action",
-        "openral.intervention",
-        "openral.active_skill",
-        "openral.policy_action",
-        "openral.handover_ramp",
-        "openral.trace_id",
-        "openral.span_id",
-    ]
-    assert [
-        block[key]["dtype"] for key in ("openral.tick_idx", "openral.requested_action", "openral.active_skill")
-    ] == [
-        "int64",
-        "float32",
-        "string",
-    ]
+    assert [(key, spec) for key, spec in block.items() if key.startswith("openral.")] == list(recorded_before.items())
 
 
 def test_the_context_carries_result_fields_under_their_names_and_types() -> None:
