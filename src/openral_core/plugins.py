@@ -1,4 +1,4 @@
-"""Entry-point plugin registries: how skills, HALs, sensor backends, safety clients, robots and observers are found.
+"""Entry-point plugin registries: how every kind of plugin (skills, HALs, sensors, detectors, ...) is found.
 
 Built-ins are registered in ``pyproject.toml`` exactly like third-party plugins. A registry
 lists entry-point names without importing anything; a plugin's module is imported only
@@ -20,12 +20,18 @@ HALS_GROUP = "openral.hals"
 SAFETY_CLIENTS_GROUP = "openral.safety_clients"
 ROBOTS_GROUP = "openral.robots"
 OBSERVERS_GROUP = "openral.observers"
+SIM_ENVS_GROUP = "openral.sim_envs"
+DETECTORS_GROUP = "openral.detectors"
 
 T = TypeVar("T")
 
 
 class PluginRegistry(Mapping[str, T]):
     """A read-only ``name -> plugin object`` view over one entry-point group, typed by what the group holds.
+
+    Each group's type is a Protocol beside the seam it builds (``HALPlugin`` beside ``HAL``,
+    ``SensorBackendPlugin`` beside ``SensorReader``, ...): the registry does not check a loaded
+    object against it, but every call a caller makes through the registry is type-checked.
 
     Names are read once at construction; each object is loaded on first lookup and cached.
     Looking up an unknown name raises ``ROSConfigError`` listing the known names and the

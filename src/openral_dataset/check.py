@@ -1,7 +1,7 @@
 """``check_dataset``: is this folder a LeRobotDataset v3.0 that LeRobot loads, and do its counters tell the truth?
 
 Uses only pyarrow and PyAV. ``meta/`` and the file layout are checked by
-:func:`openral_dataset.meta.meta_problems` (the rules a resumed recording enforces too): every file
+:func:`openral_dataset.meta_reader.meta_problems` (the rules a resumed recording enforces too): every file
 ``info.json`` promises and nothing it does not (a later episode's file is an orphan that would
 leak rows into a load), the counters, the episode rows, tasks and statistics. Then each episode's
 data: index contiguity, the frame grid (``timestamp == frame_index / fps``), its rows against its
@@ -20,7 +20,7 @@ import pyarrow.parquet as pq
 
 from openral_core import ROSDependencyMissing
 from openral_core.errors import one_line
-from openral_dataset import layout, meta, schema
+from openral_dataset import layout, meta_reader, schema
 
 try:
     import av
@@ -57,22 +57,22 @@ def check_dataset(root: Path, *, decode_videos: bool = True) -> CheckReport:
             "(LeRobot never reads it; the next recording into this folder removes it)"
         )
     try:
-        info = meta.read_meta(root)
-    except meta.MetaError as exc:
+        info = meta_reader.read_meta(root)
+    except meta_reader.MetaError as exc:
         problems.append(str(exc))
         return report
     if info is None:
         problems.append(f"{layout.INFO_PATH}: missing (no episode was ever committed)")
         return report
     report.episodes = info.total_episodes
-    problems.extend(meta.layout_problems(root, info))
+    problems.extend(meta_reader.layout_problems(root, info))
     if problems:
         return report
-    rows = meta.episode_rows(root, info, problems)
-    problems.extend(meta.table_problems(root, info, rows))
+    rows = meta_reader.episode_rows(root, info, problems)
+    problems.extend(meta_reader.table_problems(root, info, rows))
     try:
-        task_of = {index: task for task, index in meta.read_tasks(root).items()}
-    except meta.MetaError:
+        task_of = {index: task for task, index in meta_reader.read_tasks(root).items()}
+    except meta_reader.MetaError:
         return report  # reported above
     if len(rows) < info.total_episodes:
         return report  # an episode row cannot be read: the data cannot be checked against it

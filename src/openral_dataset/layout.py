@@ -72,7 +72,7 @@ def video_file(root: Path, video_key: str, episode_idx: int) -> Path:
 
 
 def read_info(root: Path) -> dict[str, Any] | None:
-    """``meta/info.json`` parsed but not checked (``None`` when there is none); ``meta.read_meta`` checks it.
+    """``meta/info.json`` parsed but not checked (``None`` when there is none); ``meta_reader.read_meta`` checks it.
 
     Raises:
         ValueError: It is not a JSON object.

@@ -1,7 +1,7 @@
 """Opening a folder to record into: refuse what cannot be trusted before touching a file.
 
 - A folder that is a file, or whose metadata ``openral dataset check`` would flag
-  (:mod:`openral_dataset.meta`), is refused as it is.
+  (:mod:`openral_dataset.meta_reader`), is refused as it is.
 - A new recording needs a folder without ``info.json`` that holds nothing but an interrupted
   first episode of ours (put back); any other file is refused, never deleted.
 - A resumed recording needs the dataset's features and rate to be the recording's; then an
@@ -24,7 +24,7 @@ import numpy as np
 import structlog
 
 from openral_core import ROSConfigError
-from openral_dataset import commit, layout, meta
+from openral_dataset import commit, layout, meta_reader
 
 _log = structlog.get_logger(__name__)
 
@@ -40,7 +40,7 @@ class Resumed:
     stats: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
-def existing(root: Path, *, resume: bool, field: str) -> meta.DatasetMeta | None:
+def existing(root: Path, *, resume: bool, field: str) -> meta_reader.DatasetMeta | None:
     """The dataset already in ``root``, checked (``None``: there is none yet).
 
     Raises:
@@ -50,8 +50,8 @@ def existing(root: Path, *, resume: bool, field: str) -> meta.DatasetMeta | None
     if root.exists() and not root.is_dir():
         raise ROSConfigError(f"{root} is a file, not a folder", field=field)
     try:
-        found = meta.read_meta(root)
-    except meta.MetaError as exc:
+        found = meta_reader.read_meta(root)
+    except meta_reader.MetaError as exc:
         raise ROSConfigError(
             f"cannot open {root}: {exc}",
             field=field,
@@ -69,7 +69,7 @@ def existing(root: Path, *, resume: bool, field: str) -> meta.DatasetMeta | None
 
 
 def check_compatible(
-    root: Path, found: meta.DatasetMeta, *, fps: int, features: dict[str, dict[str, Any]], field: str
+    root: Path, found: meta_reader.DatasetMeta, *, fps: int, features: dict[str, dict[str, Any]], field: str
 ) -> None:
     """Refuse to resume a dataset recorded at another rate or with other features (dtype, shape, codec, pixels).
 
@@ -115,7 +115,7 @@ def prepare_new(root: Path, *, field: str) -> None:
     _check_writable(root, field)
 
 
-def resume(root: Path, found: meta.DatasetMeta, *, field: str) -> Resumed:
+def resume(root: Path, found: meta_reader.DatasetMeta, *, field: str) -> Resumed:
     """Put back an interrupted commit, check the dataset's files against its metadata, and read what goes on.
 
     Call :func:`check_compatible` first: nothing is touched for a dataset that cannot be resumed.
@@ -125,7 +125,7 @@ def resume(root: Path, found: meta.DatasetMeta, *, field: str) -> Resumed:
     """
     with _writing(root, field):
         _report_cleanup(root, commit.recover(root, found.total_episodes))
-    problems = meta.meta_problems(root, found)
+    problems = meta_reader.meta_problems(root, found)
     if problems:
         more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
         raise ROSConfigError(
@@ -137,9 +137,9 @@ def resume(root: Path, found: meta.DatasetMeta, *, field: str) -> Resumed:
     resumed = Resumed(
         episodes=found.total_episodes,
         frames=found.total_frames,
-        tasks=meta.read_tasks(root),
-        outcomes=meta.read_outcome_lines(root, found.total_episodes),
-        stats=meta.read_stats(root) or {},
+        tasks=meta_reader.read_tasks(root),
+        outcomes=meta_reader.read_outcome_lines(root, found.total_episodes),
+        stats=meta_reader.read_stats(root) or {},
     )
     _check_writable(root, field)
     return resumed

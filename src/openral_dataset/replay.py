@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from openral_core import ROSConfigError, ROSDependencyMissing
-from openral_dataset import layout, meta, schema
+from openral_dataset import layout, meta_reader, schema
 
 try:
     import av
@@ -58,8 +58,8 @@ def lookup_frame(root: Path, episode_idx: int, frame_idx: int) -> ReplayFrame:
         ROSConfigError: No such dataset, episode or frame.
     """
     try:
-        info = meta.read_meta(root)
-    except meta.MetaError as exc:
+        info = meta_reader.read_meta(root)
+    except meta_reader.MetaError as exc:
         raise ROSConfigError(
             f"{root}: {exc}", field="--frame", hint=f"openral dataset check {root} lists every problem"
         ) from None

@@ -10,7 +10,7 @@ commit is put back at once; one a crash interrupted, the next time the dataset i
 Opening refuses what it cannot trust before it touches a file (:mod:`openral_dataset.opening`);
 it happens when the sink is built, or at :meth:`LeRobotDatasetSink.open` for a sink built with
 ``defer_open`` (a recorder built from a deployment's ``observers:`` opens nothing until it starts).
-The metadata a commit writes is :mod:`openral_dataset.meta_files`.
+The metadata a commit writes is :mod:`openral_dataset.meta_writer`.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ import numpy as np
 import structlog
 
 from openral_core import ROSConfigError, ROSDependencyMissing, ROSRuntimeError, SensorFrame
-from openral_dataset import commit, layout, meta_files, opening, schema, stats
+from openral_dataset import commit, layout, meta_writer, opening, schema, stats
 from openral_dataset.episode import EpisodeSummary, StagedEpisode
-from openral_dataset.meta import read_tasks
+from openral_dataset.meta_reader import read_tasks
 from openral_dataset.video import EncoderProcess, OverflowPolicy, StreamingVideoEncoder
 
 try:
@@ -343,7 +343,7 @@ class LeRobotDatasetSink:
             {name: pa.array(values, type=self._arrow.field(name).type) for name, values in episode.rows.items()}
         )
         episode_stats = episode.statistics(self.features, table, self.cameras)
-        row = meta_files.episode_row(
+        row = meta_writer.episode_row(
             episode_idx=episode.idx,
             task=episode.task,
             frames=frames,
@@ -352,8 +352,8 @@ class LeRobotDatasetSink:
             features=self.features,
             episode_stats=episode_stats,
         )
-        layout.write_file(folder / "data.parquet", meta_files.parquet_bytes(table))
-        layout.write_file(folder / "episode.parquet", meta_files.parquet_bytes(row))
+        layout.write_file(folder / "data.parquet", meta_writer.parquet_bytes(table))
+        layout.write_file(folder / "episode.parquet", meta_writer.parquet_bytes(row))
         moves = [
             commit.Move(
                 folder / f"{cam.sensor_id}.mp4",
@@ -364,7 +364,7 @@ class LeRobotDatasetSink:
         moves.append(commit.Move(folder / "data.parquet", layout.data_file(self.root, episode.idx)))
         moves.append(commit.Move(folder / "episode.parquet", layout.episodes_file(self.root, episode.idx)))
 
-        outcome = meta_files.outcome_line(episode.idx, success=success, repeated_frames=episode.repeated_frames)
+        outcome = meta_writer.outcome_line(episode.idx, success=success, repeated_frames=episode.repeated_frames)
         outcomes = [*self._outcomes, outcome]
         tasks = dict(self._tasks)
         tasks.setdefault(episode.task, episode.task_index)
@@ -372,7 +372,7 @@ class LeRobotDatasetSink:
             name: stats.merge_stats([self._merged[name], values]) if name in self._merged else values
             for name, values in episode_stats.items()
         }
-        info = meta_files.info(
+        info = meta_writer.info(
             robot_type=self.robot_type,
             fps=self.fps,
             features=self.features,
@@ -381,8 +381,8 @@ class LeRobotDatasetSink:
             tasks=len(tasks),
         )
         dataset_files = {  # info.json last: moving it into place is the commit
-            layout.OUTCOMES_PATH: meta_files.outcomes_bytes(outcomes),
-            layout.TASKS_PATH: meta_files.tasks_parquet_bytes(tasks),
+            layout.OUTCOMES_PATH: meta_writer.outcomes_bytes(outcomes),
+            layout.TASKS_PATH: meta_writer.tasks_parquet_bytes(tasks),
             layout.STATS_PATH: json.dumps(stats.to_json(merged), indent=2).encode("utf-8"),
             layout.INFO_PATH: json.dumps(info, indent=2).encode("utf-8"),
         }

@@ -13,7 +13,6 @@ import functools
 import os
 from importlib.resources import files
 from importlib.resources.abc import Traversable
-from typing import Any
 
 from openral_core.config import validate_model
 from openral_core.config_files import parse_config_text, read_config_file
@@ -23,7 +22,10 @@ from openral_core.robot import RobotManifest
 
 MANIFEST_FILE = "robot.yaml"
 
-ROBOT_REGISTRY: PluginRegistry[Any] = PluginRegistry(ROBOTS_GROUP, kind="robot", field="hal.robot_id")
+RobotManifestSource = RobotManifest | str | os.PathLike[str] | Traversable
+"""What an ``openral.robots`` entry point gives: a ready manifest, or where its ``robot.yaml`` is."""
+
+ROBOT_REGISTRY: PluginRegistry[RobotManifestSource] = PluginRegistry(ROBOTS_GROUP, kind="robot", field="hal.robot_id")
 """Robot id → its manifest (a path to ``robot.yaml`` or a ``RobotManifest``)."""
 
 
@@ -64,7 +66,7 @@ def _load(robot_id: str) -> RobotManifest:
     return manifest
 
 
-def _manifest_from(entry: Any, robot_id: str) -> RobotManifest:
+def _manifest_from(entry: RobotManifestSource, robot_id: str) -> RobotManifest:
     if isinstance(entry, RobotManifest):
         return entry
     if isinstance(entry, Traversable) and not isinstance(entry, os.PathLike):

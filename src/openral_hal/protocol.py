@@ -13,11 +13,12 @@ device is ``connect()``'s job, so a failed start-up has nothing to roll back.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from openral_core.actions import Action
+from openral_core.robot import RobotManifest
 from openral_core.world import JointState
 
 
@@ -85,6 +86,18 @@ class HAL(Protocol):
 
         Raises:
             ROSHardwareError: The hold command could not be delivered.
+        """
+        ...
+
+
+class HALPlugin(Protocol):
+    """What the ``openral.hals`` group holds: an adapter class, built as ``Adapter(manifest, params)``."""
+
+    def __call__(self, manifest: RobotManifest, params: Mapping[str, Any]) -> HAL:
+        """Build an unconnected HAL for ``manifest``, validating ``params`` (the deployment's ``hal.params``).
+
+        Raises:
+            ROSConfigError: A wrong or missing parameter, named as ``hal.params.<key>``.
         """
         ...
 

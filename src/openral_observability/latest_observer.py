@@ -4,9 +4,12 @@ The second queue discipline beside :class:`~openral_observability.queued_observe
 (every tick, in order). Thumbnails, detectors and live image views want the freshest frame of each
 camera, not a backlog: an item offered while an older one of the same key still waits replaces it
 (counted in :attr:`replaced`), so the work can never fall behind by more than one item per key.
-The tick thread pays one dictionary store per offer and a wake-up only when a key had nothing
+The offering thread pays one dictionary store per offer and a wake-up only when a key had nothing
 pending. :meth:`close` hands what is pending to the worker and stops it; :meth:`start` restarts it,
 so a runner can be activated again.
+
+:class:`LatestPerKeyWorker` is the discipline alone, for a part fed from elsewhere than the ticks
+(a GStreamer leg, another observer); :class:`LatestPerKeyObserver` is that worker fed by the ticks.
 """
 
 from __future__ import annotations
@@ -26,12 +29,12 @@ K = TypeVar("K", bound=Hashable)
 V = TypeVar("V")
 
 
-class LatestPerKeyObserver(TickObserver, Generic[K, V]):
-    """Base for observers that work on the newest item of each key (a camera, a detector kind).
+class LatestPerKeyWorker(Generic[K, V]):
+    """A worker thread that handles the newest item of each key (a camera, a detector kind).
 
-    Subclasses pick items in :meth:`on_tick` (tick thread: take references, touch no pixels) and
-    :meth:`offer` them; :meth:`handle_item` does the work on the worker thread, one key's newest item
-    at a time. A handler that raises is logged and counted in :attr:`errors`; the worker goes on.
+    Callers :meth:`offer` items from any thread; :meth:`handle_item` does the work on the worker
+    thread, one key's newest item at a time. A handler that raises is logged and counted in
+    :attr:`errors`; the worker goes on.
 
     Args:
         name: Worker thread name, for logs and debuggers.
@@ -64,9 +67,6 @@ class LatestPerKeyObserver(TickObserver, Generic[K, V]):
                 return  # the worker was already woken for this key
             self._pending[key] = item
             self._cond.notify()
-
-    def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
-        """Pick and :meth:`offer` items from one tick (tick thread); the default takes nothing."""
 
     def start(self) -> None:
         """Start (or restart) the worker. Idempotent."""
@@ -138,3 +138,13 @@ class LatestPerKeyObserver(TickObserver, Generic[K, V]):
             self.errors += 1
             _log.error("observer failed on an item", observer=self._name, error=str(exc))
             _log.debug("observer failure", observer=self._name, exc_info=exc)  # the traceback: --debug only
+
+
+class LatestPerKeyObserver(LatestPerKeyWorker[K, V], TickObserver):
+    """A :class:`LatestPerKeyWorker` fed by the ticks: subclasses pick items in :meth:`on_tick` and offer them.
+
+    :meth:`on_tick` runs on the tick thread: take references, touch no pixels.
+    """
+
+    def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
+        """Pick and :meth:`offer` items from one tick (tick thread); the default takes nothing."""

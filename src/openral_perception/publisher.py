@@ -1,8 +1,9 @@
 """``PerceptionEventPublisher``: detectors on a worker over the newest frame of each camera, events to the sinks.
 
-Frames come from the ``perception`` observer (the frames of each tick) or from a GStreamer event
-leg; either way :meth:`~PerceptionEventPublisher.submit` only stores a reference. The worker (a
-:class:`~openral_observability.latest_observer.LatestPerKeyObserver`, keyed by camera) runs each
+The publisher is a frame consumer, not an observer: frames come from the ``perception`` observer
+(:class:`~openral_perception.observer.PerceptionObserver`, the frames of each tick) or from a
+GStreamer event leg; either way :meth:`~PerceptionEventPublisher.submit` only stores a reference.
+The worker (a :class:`~openral_observability.latest_observer.LatestPerKeyWorker`, keyed by camera) runs each
 :class:`~openral_perception.detectors.base.EventDetector` and publishes what they find to the sinks
 (Zenoh, ROS 2), with a span per detection and counters in telemetry.
 
@@ -28,7 +29,7 @@ import structlog
 from openral_core import ROSConfigError, SensorFrame
 from openral_core.perception import PerceptionEvent
 from openral_observability import metrics, semconv, tracer
-from openral_observability.latest_observer import LatestPerKeyObserver
+from openral_observability.latest_observer import LatestPerKeyWorker
 from openral_perception.detectors.base import EventDetector
 from openral_perception.frame import DetectorFrame
 
@@ -78,7 +79,7 @@ class TokenBucket:
         return False
 
 
-class PerceptionEventPublisher(LatestPerKeyObserver[str, SensorFrame]):
+class PerceptionEventPublisher(LatestPerKeyWorker[str, SensorFrame]):
     """Runs detectors on a worker over the newest frame of each sensor and publishes their events.
 
     :meth:`start` opens the sinks that open a link, then starts the worker; :meth:`close` lets the

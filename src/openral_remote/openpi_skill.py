@@ -37,7 +37,6 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from openral_core import (
-    Action,
     ControlMode,
     RobotManifest,
     ROSConfigError,
@@ -45,7 +44,6 @@ from openral_core import (
     ROSUnavailable,
     RSkillInfo,
     RSkillState,
-    WorldState,
 )
 from openral_core.config_files import read_config_file, require_user_file
 from openral_core.errors import renamed_field
@@ -64,7 +62,7 @@ from openral_rskill.anchoring import (
     StateOffsetAnchor,
     UnanchoredRows,
 )
-from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.base import ChunkingSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
 
 SKILL_ID = "openpi_policy"
@@ -239,7 +237,7 @@ class _Link:
             stack.close()
 
 
-class OpenpiPolicySkill(RSkillBase):
+class OpenpiPolicySkill(ChunkingSkillBase):
     """Asks an openpi-protocol server for each chunk.
 
     Args:
@@ -324,6 +322,10 @@ class OpenpiPolicySkill(RSkillBase):
         return self._info
 
     @property
+    def action_names(self) -> list[str]:
+        return list(self.robot.joint_names)
+
+    @property
     def reads(self) -> list[str]:
         """The world-state fields an openral server's policy reads (empty: everything, or the profile's)."""
         return list(self.served.observation) if self.served is not None else []
@@ -393,16 +395,6 @@ class OpenpiPolicySkill(RSkillBase):
             self._mark_down(link)
             raise
         return self._rows(answer)
-
-    def _step_impl(self, world_state: WorldState) -> Action:
-        row = self._chunk_impl(ChunkRequest(world_state))[0]
-        return Action(
-            control_mode=self._info.control_mode,
-            joint_names=self.robot.joint_names,
-            targets=[row.tolist()],
-            stamp_ns=world_state.stamp_ns,
-            skill_id=SKILL_ID,
-        )
 
     # -- internals ---------------------------------------------------------------------------
 

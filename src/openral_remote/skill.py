@@ -22,7 +22,7 @@ from typing import Any, Self
 
 import numpy as np
 
-from openral_core import Action, RobotManifest, ROSConfigError, RSkillInfo, WorldState
+from openral_core import RobotManifest, ROSConfigError, RSkillInfo
 from openral_remote.allocator import keep_message_memory
 from openral_remote.client import SHAPE_FIELDS, RemotePolicyClient, check_compatible
 from openral_remote.config import RemotePolicyParams
@@ -30,13 +30,13 @@ from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
 from openral_remote.tls import check_tls
 from openral_rskill.anchoring import Anchor
-from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.base import ChunkingSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
 
 SKILL_ID = "remote_policy"
 
 
-class RemotePolicySkill(RSkillBase):
+class RemotePolicySkill(ChunkingSkillBase):
     """Asks a policy server for each chunk.
 
     Args:
@@ -94,6 +94,10 @@ class RemotePolicySkill(RSkillBase):
     def info(self) -> RSkillInfo:
         return self._info
 
+    @property
+    def action_names(self) -> list[str]:
+        return list(self.meta.action_names)
+
     def action_anchor(self) -> Anchor:
         """The anchor the served skill would use locally."""
         return self.meta.anchor.build()
@@ -136,17 +140,6 @@ class RemotePolicySkill(RSkillBase):
     def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
         """The server's chunk for the request (observation, history, prefix, seed): the decoded array, as it came."""
         return self.client.infer(request, seed=self.episode_seed)
-
-    def _step_impl(self, world_state: WorldState) -> Action:
-        """The first row of the server's chunk for ``world_state``."""
-        row = self.client.infer(ChunkRequest(world_state), seed=self.episode_seed)[0]
-        return Action(
-            control_mode=self.meta.control_mode,
-            joint_names=self.meta.action_names,
-            targets=[row.tolist()],
-            stamp_ns=world_state.stamp_ns,
-            skill_id=SKILL_ID,
-        )
 
 
 def _check_files(params: RemotePolicyParams) -> None:

@@ -16,13 +16,13 @@ from typing import Any
 
 import numpy as np
 
-from openral_core import Action, RSkillInfo, WorldState
+from openral_core import RSkillInfo, WorldState
 from openral_remote.allocator import keep_message_memory
 from openral_remote.config import ZenohConfig
 from openral_remote.keys import PolicyKeys
 from openral_remote.meta import PolicyMeta
 from openral_rskill.anchoring import AnchorSpec
-from openral_rskill.base import RSkillBase
+from openral_rskill.base import ChunkingSkillBase
 from openral_rskill.chunks import ChunkRequest
 
 ROBOT = "test_robot"
@@ -46,7 +46,7 @@ def free_endpoint() -> str:
         return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
 
 
-class ChunkSkill(RSkillBase):
+class ChunkSkill(ChunkingSkillBase):
     """Row ``j`` of a chunk is ``base + offset + j * step``: ``base`` the observed joints (zeros without).
 
     Args:
@@ -74,7 +74,7 @@ class ChunkSkill(RSkillBase):
         batch: int = 1,
     ) -> None:
         super().__init__()
-        self.action_names = list(action_names)
+        self._action_names = list(action_names)
         self.chunk_size = chunk_size
         self.offset = offset
         self.step_size = step
@@ -89,6 +89,10 @@ class ChunkSkill(RSkillBase):
     @property
     def info(self) -> RSkillInfo:
         return self._info
+
+    @property
+    def action_names(self) -> list[str]:
+        return self._action_names
 
     def rows(self, world: WorldState) -> np.ndarray:
         """The chunk for ``world`` (what a client must receive)."""
@@ -121,9 +125,6 @@ class ChunkSkill(RSkillBase):
         if self.delay_s:
             time.sleep(self.delay_s)
         return [self.rows(request.world) for request in requests]
-
-    def _step_impl(self, world_state: WorldState) -> Action:
-        return Action(joint_names=self.action_names, targets=[self._chunk_impl(ChunkRequest(world_state))[0].tolist()])
 
 
 def chunk_meta(skill: ChunkSkill, *, rate_hz: float, model_hash: str) -> PolicyMeta:

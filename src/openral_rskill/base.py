@@ -9,7 +9,8 @@ A skill moves through the ROS 2 managed-node states (:class:`~openral_core.skill
 
 Subclasses implement the ``_on_*`` hooks (all optional) and :meth:`RSkillBase._step_impl`; the base
 owns the state, the error latch and the per-step latency figures, so every skill behaves the same
-under the runner.
+under the runner. A skill whose model answers in chunks derives from :class:`ChunkingSkillBase`
+instead and implements ``_chunk_impl`` alone: its step is the chunk's row 0.
 
 Error latch: an exception escaping a hook or ``_step_impl`` moves the skill to ``ERROR`` and is
 re-raised as :class:`~openral_core.errors.ROSSkillError` (``from`` the original) naming the skill and
@@ -192,10 +193,10 @@ class RSkillBase(ABC):
         """Compute the action for this tick from ``world_state``."""
 
     def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
-        """A chunking skill's ``(rows, dims)`` chunk for ``request``; by default the targets of :meth:`_step_impl`.
+        """The ``(rows, dims)`` chunk for ``request``; here the targets of :meth:`_step_impl`.
 
-        Override it to hand the executor the model's array as it is, and to use the request's
-        history or prefix.
+        A skill whose model answers in chunks (and uses the request's history or prefix) derives
+        from :class:`ChunkingSkillBase`, where this is the hook and the step is derived from it.
         """
         return np.asarray(self._step_impl(request.world).targets, dtype=np.float64)
 
@@ -434,6 +435,39 @@ class RSkillBase(ABC):
             {semconv.ATTR_SKILL_ID: skill_id, "exception.type": type(exc).__name__},
         )
         return ROSSkillError(f"skill '{skill_id}' failed in {phase}: {_describe(exc)}")
+
+
+class ChunkingSkillBase(RSkillBase):
+    """Base of a skill whose model answers in chunks: it writes :meth:`_chunk_impl` and names the chunk's columns.
+
+    The chunk is the one thing such a skill computes. The chunk executor runs its rows; a bare
+    :meth:`~RSkillBase.step` (no executor) is row 0 of the chunk for the tick's world state, made
+    into an :class:`~openral_core.actions.Action` here, so no chunking skill builds one by hand.
+    """
+
+    @property
+    @abstractmethod
+    def action_names(self) -> list[str]:
+        """The joints (or action dimensions) of the chunk's columns, in order."""
+
+    @abstractmethod
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        """The ``(rows, dims)`` chunk for ``request``: the model's array as it is."""
+
+    def _step_impl(self, world_state: WorldState) -> Action:
+        """Row 0 of the chunk for ``world_state``."""
+        return self._rows_action(world_state, self._chunk_impl(ChunkRequest(world_state))[:1])
+
+    def _rows_action(self, world_state: WorldState, rows: np.ndarray) -> Action:
+        """``rows`` (``(rows, dims)``) as the action of the tick that saw ``world_state``."""
+        info = self.info
+        return Action(
+            control_mode=info.control_mode,
+            joint_names=self.action_names,
+            targets=rows.tolist(),
+            stamp_ns=world_state.stamp_ns,
+            skill_id=info.skill_id,
+        )
 
 
 def _describe(exc: BaseException | None) -> str:

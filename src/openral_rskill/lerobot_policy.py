@@ -30,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import Action, ControlMode, RobotManifest, ROSConfigError, RSkillInfo, WorldState
 from openral_rskill.anchoring import AbsoluteAnchor, ActionRepresentation, Anchor, StateOffsetAnchor
-from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.base import ChunkingSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
 from openral_rskill.lerobot.checkpoint import Checkpoint
 from openral_rskill.lerobot.observation import ObservationMap
@@ -68,7 +68,7 @@ class LeRobotPolicyParams(BaseModel):
     threads: int | None = Field(default=None, ge=1, le=256, description="PyTorch CPU threads (default: its own).")
 
 
-class LeRobotPolicySkill(RSkillBase):
+class LeRobotPolicySkill(ChunkingSkillBase):
     """A LeRobot checkpoint: observations mapped from the world state, chunks handed over as arrays.
 
     Args:
@@ -121,6 +121,10 @@ class LeRobotPolicySkill(RSkillBase):
     @property
     def info(self) -> RSkillInfo:
         return self._info
+
+    @property
+    def action_names(self) -> list[str]:
+        return list(self.robot.joint_names)
 
     @property
     def device(self) -> str | None:
@@ -201,18 +205,12 @@ class LeRobotPolicySkill(RSkillBase):
         return chunks if self.units.identity else [self.units.to_radians(rows) for rows in chunks]
 
     def _step_impl(self, world_state: WorldState) -> Action:
+        """A chunk policy's row 0; a per-tick policy's next action from its own queue."""
         if self.checkpoint.chunk_size > 1:
-            targets = self._chunk_impl(ChunkRequest(world_state))[:1]
-        else:
-            action = self._policy.select(self.inputs.arrays(world_state), world_state.task or "")
-            targets = (action if self.units.identity else self.units.to_radians(action)).reshape(1, -1)
-        return Action(
-            control_mode=self._info.control_mode,
-            joint_names=self.robot.joint_names,
-            targets=targets.tolist(),
-            stamp_ns=world_state.stamp_ns,
-            skill_id=SKILL_ID,
-        )
+            return super()._step_impl(world_state)
+        action = self._policy.select(self.inputs.arrays(world_state), world_state.task or "")
+        row = action if self.units.identity else self.units.to_radians(action)
+        return self._rows_action(world_state, row.reshape(1, -1))
 
 
 __all__ = ["LeRobotPolicyParams", "LeRobotPolicySkill"]

@@ -21,7 +21,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import (
-    Action,
     ControlMode,
     RobotManifest,
     ROSConfigError,
@@ -38,7 +37,7 @@ from openral_rskill.anchoring import (
     StateOffsetAnchor,
     UnanchoredRows,
 )
-from openral_rskill.base import RSkillBase, validate_params
+from openral_rskill.base import ChunkingSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
 
 try:
@@ -78,7 +77,7 @@ class OnnxPolicyParams(BaseModel):
     dt_s: float | None = Field(default=None, gt=0, description="The policy's step; must match the tick period.")
 
 
-class OnnxPolicySkill(RSkillBase):
+class OnnxPolicySkill(ChunkingSkillBase):
     """Runs an ONNX model: input ``(1, obs_dim)``, output ``(1, chunk, action_dim)`` (or ``(1, action_dim)``)."""
 
     def __init__(self, robot: RobotManifest, params: OnnxPolicyParams, *, rate_hz: float) -> None:
@@ -134,6 +133,10 @@ class OnnxPolicySkill(RSkillBase):
     @property
     def info(self) -> RSkillInfo:
         return self._info
+
+    @property
+    def action_names(self) -> list[str]:
+        return list(self.names)
 
     def action_anchor(self) -> Anchor:
         """How the executor anchors this model's rows (from ``representation``)."""
@@ -212,17 +215,6 @@ class OnnxPolicySkill(RSkillBase):
         (output,) = self._session.run(None, {self._input: batch})
         rows = np.asarray(output, dtype=np.float64).reshape(len(requests), -1, len(self.names))
         return list(rows)
-
-    def _step_impl(self, world_state: WorldState) -> Action:
-        """The first row of the chunk for ``world_state`` (a chunk's rows run behind the chunk executor)."""
-        row = self._infer(self.observation_vector(world_state))[0]
-        return Action(
-            control_mode=self._info.control_mode,
-            joint_names=self.names,
-            targets=[row.tolist()],
-            stamp_ns=world_state.stamp_ns,
-            skill_id=SKILL_ID,
-        )
 
 
 def _read_metadata(path: Path) -> dict[str, str]:

@@ -24,24 +24,24 @@ from openral_core.plugins import (
     PluginRegistry,
 )
 from openral_hal.manifests import load_robot_manifest
-from openral_hal.protocol import HAL
+from openral_hal.protocol import HAL, HALPlugin
 from openral_observability.observer import TickObserver
-from openral_rskill.base import OfflineConfigCheck, OfflineObservation, RobotInputCheck, RSkillBase
+from openral_rskill.base import OfflineConfigCheck, OfflineObservation, RobotInputCheck, RSkillBase, RSkillPlugin
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.clock import Clock
 from openral_runner.envelope import EnvelopeSafetyClient
 from openral_runner.hardware import HardwareRunner
-from openral_runner.safety import SafetyClient
-from openral_runner.sensor_reader import SensorReader
+from openral_runner.safety import SafetyClient, SafetyClientPlugin
+from openral_runner.sensor_reader import SensorBackendPlugin, SensorReader
 from openral_runner.takeover import Takeover
 from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
 
-SKILL_REGISTRY: PluginRegistry[Any] = PluginRegistry(SKILLS_GROUP, kind="skill", field="vla.id")
+SKILL_REGISTRY: PluginRegistry[RSkillPlugin] = PluginRegistry(SKILLS_GROUP, kind="skill", field="vla.id")
 """Skill id → skill class (``Cls.from_config(params, robot=..., rate_hz=...)``)."""
 
-SENSOR_BACKEND_REGISTRY: PluginRegistry[Any] = PluginRegistry(
+SENSOR_BACKEND_REGISTRY: PluginRegistry[SensorBackendPlugin] = PluginRegistry(
     SENSOR_BACKENDS_GROUP, kind="sensor backend", field="sensors[].backend"
 )
 """Backend id → reader class (``Cls.from_config(config, hal=..., robot=..., base_dir=...)``).
@@ -49,10 +49,10 @@ SENSOR_BACKEND_REGISTRY: PluginRegistry[Any] = PluginRegistry(
 ``base_dir`` is the deployment file's directory: relative device paths resolve against it.
 """
 
-HAL_REGISTRY: PluginRegistry[Any] = PluginRegistry(HALS_GROUP, kind="HAL adapter", field="hal.adapter")
+HAL_REGISTRY: PluginRegistry[HALPlugin] = PluginRegistry(HALS_GROUP, kind="HAL adapter", field="hal.adapter")
 """Adapter id → HAL class (``Cls(manifest, params)``)."""
 
-SAFETY_CLIENT_REGISTRY: PluginRegistry[Any] = PluginRegistry(
+SAFETY_CLIENT_REGISTRY: PluginRegistry[SafetyClientPlugin] = PluginRegistry(
     SAFETY_CLIENTS_GROUP, kind="safety client", field="safety.client"
 )
 """Client id → safety client class (``Cls.from_config(config, robot=..., rate_hz=...)``)."""
@@ -88,7 +88,7 @@ def build_runner(
     """
     robot = load_robot_manifest(env.hal.robot_id)
     skill_params = _skill_params(env, robot, base_dir)
-    hal: HAL = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
+    hal = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
     skill: RSkillBase = SKILL_REGISTRY[env.vla.id].from_config(skill_params, robot=robot, rate_hz=env.rate_hz)
     _check_cameras(skill, env)
     if isinstance(skill, RobotInputCheck):
@@ -149,7 +149,7 @@ def check_deployment(env: RobotEnvironment, *, base_dir: Path | None = None) -> 
     skill_cls.check_config(skill_params, robot=robot, rate_hz=env.rate_hz)
     if isinstance(skill_cls, OfflineObservation):
         _check_camera_names(env.vla.id, skill_cls.offline_observation(skill_params), env)
-    hal: HAL = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
+    hal = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
     _safety_client(env, robot)
     for index, _ in enumerate(env.sensors):
         _build_reader(index, env, hal, robot, base_dir)
@@ -204,10 +204,7 @@ def _skill_params(env: RobotEnvironment, robot: RobotManifest, base_dir: Path | 
 
 
 def _safety_client(env: RobotEnvironment, robot: RobotManifest) -> SafetyClient:
-    client: SafetyClient = SAFETY_CLIENT_REGISTRY[env.safety.client].from_config(
-        env.safety, robot=robot, rate_hz=env.rate_hz
-    )
-    return client
+    return SAFETY_CLIENT_REGISTRY[env.safety.client].from_config(env.safety, robot=robot, rate_hz=env.rate_hz)
 
 
 def _build_observers(env: RobotEnvironment, robot: RobotManifest, base_dir: Path | None) -> list[TickObserver]:
@@ -252,8 +249,7 @@ def _build_reader(
 ) -> SensorReader:
     config = env.sensors[index]
     backend = SENSOR_BACKEND_REGISTRY.resolve(config.backend, field=f"sensors[{index}].backend")
-    reader: SensorReader = backend.from_config(config, hal=hal, robot=robot, base_dir=base_dir)
-    return reader
+    return backend.from_config(config, hal=hal, robot=robot, base_dir=base_dir)
 
 
 __all__ = [

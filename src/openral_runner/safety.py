@@ -35,6 +35,18 @@ class SafetyClient(Protocol):
         ...
 
 
+class SafetyClientPlugin(Protocol):
+    """What the ``openral.safety_clients`` group holds: a class built from the deployment's ``safety`` block."""
+
+    def from_config(self, config: SafetyConfig, *, robot: RobotManifest, rate_hz: float) -> SafetyClient:
+        """Build the client guarding ``robot`` at ``rate_hz`` ticks per second (a step limit is per tick).
+
+        Raises:
+            ROSConfigError: The block asks for what the robot's manifest cannot give.
+        """
+        ...
+
+
 @runtime_checkable
 class SafetyStateObserver(Protocol):
     """A safety client that wants the joints measured each tick, before the skill steps."""

@@ -7,9 +7,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
-from openral_core import ROSPerceptionStale, ROSSyncError, SensorFrame, SensorReaderConfig
+from openral_core import RobotManifest, ROSPerceptionStale, ROSSyncError, SensorFrame, SensorReaderConfig
 from openral_core.config import ModelT, validate_model
 from openral_core.config_files import require_user_file
+from openral_hal.protocol import HAL
 
 
 @runtime_checkable
@@ -17,8 +18,8 @@ class SensorReader(Protocol):
     """One sensor's capture, running in the background and serving its latest frame.
 
     This is the whole contract a backend must meet to run under the runner. Backends live in
-    ``openral_runner.backends`` or in other packages and register in ``openral.sensor_backends``
-    (constructed with ``Cls.from_config(config, hal=..., robot=..., base_dir=...)``).
+    ``openral_runner.backends`` or in other packages and register their class in
+    ``openral.sensor_backends`` (see :class:`SensorBackendPlugin`).
 
     ``read_latest`` never blocks on the device: it returns the freshest buffered frame, or
     raises ``ROSPerceptionStale`` when there is none yet or it is older than ``max_age_ms``
@@ -59,6 +60,26 @@ class SyncedSensorReader(SensorReader, Protocol):
             ROSPerceptionStale: No such frame by the deadline.
             ROSRuntimeError: The reader is closed or failed.
         """
+
+
+class SensorBackendPlugin(Protocol):
+    """What the ``openral.sensor_backends`` group holds: a reader class built from one sensor of the deployment."""
+
+    def from_config(
+        self, config: SensorReaderConfig, *, hal: HAL, robot: RobotManifest, base_dir: Path | None = None
+    ) -> SensorReader:
+        """Build a closed reader; ``backend_params`` are validated with the backend's own model.
+
+        Args:
+            config: The sensor's block of the deployment.
+            hal: The deployment's HAL (a camera rendered from a simulated robot needs it).
+            robot: The robot's manifest.
+            base_dir: Folder a relative file path is resolved against (the deployment file's).
+
+        Raises:
+            ROSConfigError: A wrong or missing parameter, named as ``sensors[<id>].backend_params.<key>``.
+        """
+        ...
 
 
 POLL_INTERVAL_S = 0.0005

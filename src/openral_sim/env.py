@@ -10,14 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol, Self, runtime_checkable
+from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
 from openral_core import JointSpec, RobotManifest, SimEnvironment
-from openral_core.plugins import PluginRegistry
-
-SIM_ENVS_GROUP = "openral.sim_envs"
+from openral_core.plugins import SIM_ENVS_GROUP, PluginRegistry
 
 ActionKind = Literal["delta", "absolute"]
 """How the env reads an action: a change from where it is (hold = zero motion) or a target (hold = repeat)."""
@@ -118,10 +116,9 @@ class SimEnv(Protocol):
 
 
 class SimEnvPlugin(Protocol):
-    """What the ``openral.sim_envs`` group holds: a class built from the scene."""
+    """What the ``openral.sim_envs`` group holds: an adapter class with a ``from_scene`` classmethod."""
 
-    @classmethod
-    def from_scene(cls, scene: SimEnvironment) -> Self:
+    def from_scene(self, scene: SimEnvironment) -> SimEnv:
         """Build the environment the scene names.
 
         Raises:
@@ -131,11 +128,12 @@ class SimEnvPlugin(Protocol):
         ...
 
 
-SIM_ENV_REGISTRY: PluginRegistry[Any] = PluginRegistry(SIM_ENVS_GROUP, kind="simulation environment", field="env")
+SIM_ENV_REGISTRY: PluginRegistry[SimEnvPlugin] = PluginRegistry(
+    SIM_ENVS_GROUP, kind="simulation environment", field="env"
+)
+"""Env name → adapter class (``Cls.from_scene(scene)``)."""
 
 
 def make_env(scene: SimEnvironment) -> SimEnv:
     """The environment of ``scene``, from the ``openral.sim_envs`` plugin it names."""
-    plugin = SIM_ENV_REGISTRY.resolve(scene.env, field="env")
-    env: SimEnv = plugin.from_scene(scene)
-    return env
+    return SIM_ENV_REGISTRY.resolve(scene.env, field="env").from_scene(scene)

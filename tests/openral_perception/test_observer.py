@@ -9,6 +9,7 @@ import pytest
 
 from openral_core import ROSConfigError, SensorFrame, TickResult, WorldState
 from openral_core.config import validate_model
+from openral_observability.observer import TickObserver
 from openral_perception.observer import PerceptionObserver
 from openral_perception.params import PerceptionParams
 from openral_perception.testing import RecordingEventSink
@@ -45,6 +46,8 @@ def test_a_detector_manifest_runs_on_the_frames_of_each_tick_in_their_colour_ord
     )
     sink = RecordingEventSink()
     observer.publisher.sinks.append(sink)
+    assert isinstance(observer, TickObserver)
+    assert not isinstance(observer.publisher, TickObserver)  # one observer; the publisher only takes frames
     assert [d.kind for d in observer.publisher.detectors] == ["motion", "objects"]
     assert not observer.publisher.is_started  # building starts nothing; the runner starts it
     observer.start()

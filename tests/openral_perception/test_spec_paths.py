@@ -30,7 +30,16 @@ LIGHT_PATHS = [
         "openral_perception.publisher",
         ["PerceptionEventPublisher", "TokenBucket", "TOPIC_PREFIX", "EventSink"],
     ),
-    ("openral_runner.backends.gstreamer.detector_factory", "openral_perception.detectors.factory", ["model_path"]),
+    (
+        "openral_runner.backends.gstreamer.detector_factory",
+        "openral_perception.detectors.factory",
+        ["build_manifest_detector"],
+    ),
+    (
+        "openral_runner.backends.gstreamer.detector_factory",
+        "openral_perception.detectors.objects_params",
+        ["model_path"],
+    ),
     ("openral_runner.backends.reward", "openral_perception.reward", ["Frame", "RollingFrameBuffer", "trend"]),
     ("openral_runner.backends.reward.frames", "openral_perception.reward.frames", ["RollingFrameBuffer"]),
     ("openral_runner.world_cloud_bridge", "openral_perception.world_cloud", ["encode_world_cloud_png"]),

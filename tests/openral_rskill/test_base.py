@@ -5,6 +5,7 @@ from __future__ import annotations
 import tracemalloc
 from collections.abc import Callable
 
+import numpy as np
 import pytest
 from opentelemetry.sdk.trace import TracerProvider
 from opentelemetry.sdk.trace.export import SimpleSpanProcessor
@@ -14,6 +15,7 @@ from pydantic import BaseModel, ConfigDict
 import openral_rskill.base as base_module
 from openral_core import (
     Action,
+    ControlMode,
     ROSConfigError,
     ROSEStopRequested,
     ROSSkillError,
@@ -24,6 +26,8 @@ from openral_core import (
 )
 from openral_observability import semconv
 from openral_rskill import RSkillBase, rSkillBase, validate_params
+from openral_rskill.base import ChunkingSkillBase
+from openral_rskill.chunks import ChunkRequest
 
 S = RSkillState
 WS = WorldState(stamp_ns=0)
@@ -387,3 +391,49 @@ def test_stop_requests_pass_through_without_latching(request_: Exception) -> Non
         skill.step(WS)
     assert info.value is request_
     assert skill.state is S.ACTIVE
+
+
+class Chunker(ChunkingSkillBase):
+    """Writes only its chunk: row ``j`` is ``[10 * tick + j, -j]`` for the tick of the observation."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.requests: list[ChunkRequest] = []
+
+    @property
+    def info(self) -> RSkillInfo:
+        return RSkillInfo(skill_id="chunker", control_mode=ControlMode.EE_DELTA, chunk_size=3)
+
+    @property
+    def action_names(self) -> list[str]:
+        return ["x", "gripper"]
+
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        self.requests.append(request)
+        tick = request.world.stamp_ns
+        return np.array([[10.0 * tick + j, -float(j)] for j in range(3)])
+
+
+def test_a_chunking_skill_steps_the_first_row_of_its_chunk() -> None:
+    skill = Chunker()
+    skill.configure()
+    skill.activate()
+    action = skill.step(WorldState(stamp_ns=4))
+    assert action.targets == [[40.0, 0.0]]
+    assert action.joint_names == ["x", "gripper"]
+    assert (action.control_mode, action.skill_id, action.stamp_ns) == (ControlMode.EE_DELTA, "chunker", 4)
+    assert [request.world.stamp_ns for request in skill.requests] == [4]
+    chunk = skill.step_chunk(ChunkRequest(WorldState(stamp_ns=5)))
+    assert chunk.shape == (3, 2)
+    assert skill.step_count == 2
+
+
+def test_a_chunking_skill_must_name_its_chunk_and_its_columns() -> None:
+    class Incomplete(ChunkingSkillBase):
+        @property
+        def info(self) -> RSkillInfo:
+            return RSkillInfo(skill_id="incomplete")
+
+    with pytest.raises(TypeError, match="_chunk_impl") as info:
+        Incomplete()  # type: ignore[abstract]
+    assert "action_names" in str(info.value)

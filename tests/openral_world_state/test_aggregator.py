@@ -81,16 +81,16 @@ class Feed:
         self.frames: dict[str, SensorFrame] = {}
         self.failures: dict[str, ROSError] = {}
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.aggregator, name)
-
-    def update_frame(self, frame: SensorFrame) -> None:
+    def read(self, frame: SensorFrame) -> None:
+        """The sensor's reader served ``frame``: the latest frame of its sensor from now on."""
         self.frames[frame.sensor_id] = frame
 
-    def mark_stale(self, sensor_id: str, age_ms: float | None = None) -> None:
+    def read_stale(self, sensor_id: str, age_ms: float | None = None) -> None:
+        """This tick's read of ``sensor_id`` found no fresh frame."""
         self.failures[sensor_id] = ROSPerceptionStale(sensor_id, age_ms=age_ms, max_age_ms=None)
 
-    def fail(self, sensor_id: str, message: str) -> None:
+    def read_failed(self, sensor_id: str, message: str) -> None:
+        """This tick's read of ``sensor_id`` raised."""
         self.failures[sensor_id] = ROSRuntimeError(message)
 
     def snapshot(self, task: str | None = None) -> WorldState:
@@ -162,7 +162,7 @@ def test_every_declared_component_is_diagnosed_before_any_sample() -> None:
     agg = _aggregator(FakeClock())
     ws = agg.snapshot()
     assert list(ws.diagnostics) == [JOINT_STATE_COMPONENT, "front", "wrist"]
-    assert agg.components == (JOINT_STATE_COMPONENT, "front", "wrist")
+    assert agg.aggregator.components == (JOINT_STATE_COMPONENT, "front", "wrist")
     for name, diag in ws.diagnostics.items():
         assert diag.component == name
         assert diag.stale, name
@@ -179,7 +179,7 @@ def test_every_declared_component_is_diagnosed_before_any_sample() -> None:
 def test_without_sensors_image_frames_is_none() -> None:
     clock = FakeClock()
     agg = _feed(WorldStateAggregator(clock=clock))
-    agg.update_joint_state(_joints(T0))
+    agg.aggregator.update_joint_state(_joints(T0))
     ws = agg.snapshot()
     assert ws.image_frames is None
     assert list(ws.diagnostics) == [JOINT_STATE_COMPONENT]
@@ -189,9 +189,9 @@ def test_without_sensors_image_frames_is_none() -> None:
 def test_fresh_samples_are_healthy_with_exact_age() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.update_joint_state(_joints(T0))
-    agg.update_frame(_frame("front", T0 + 10 * MS))
-    agg.update_frame(_frame("wrist", T0))
+    agg.aggregator.update_joint_state(_joints(T0))
+    agg.read(_frame("front", T0 + 10 * MS))
+    agg.read(_frame("wrist", T0))
     clock.advance_ms(40)
     ws = agg.snapshot(task="pick the cube")
     assert ws.stamp_ns == clock.now_ns
@@ -206,8 +206,8 @@ def test_staleness_is_measured_from_capture_stamp_not_arrival() -> None:
     clock = FakeClock(T0 + 1_000 * MS)
     agg = _aggregator(clock)
     # Both arrive right now, but were captured long ago.
-    agg.update_frame(_frame("front", clock.now_ns - 60 * MS))
-    agg.update_joint_state(_joints(clock.now_ns - 150 * MS))
+    agg.read(_frame("front", clock.now_ns - 60 * MS))
+    agg.aggregator.update_joint_state(_joints(clock.now_ns - 150 * MS))
     ws = agg.snapshot()
     assert ws.diagnostics["front"].stale
     assert ws.diagnostics["front"].age_ms == pytest.approx(60.0)
@@ -219,7 +219,7 @@ def test_staleness_is_measured_from_capture_stamp_not_arrival() -> None:
 def test_age_equal_to_limit_is_fresh_and_one_ns_more_is_stale() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.update_frame(_frame("front", T0))
+    agg.read(_frame("front", T0))
     clock.advance_ms(50)
     assert not agg.snapshot().diagnostics["front"].stale
     clock.now_ns += 1
@@ -229,8 +229,8 @@ def test_age_equal_to_limit_is_fresh_and_one_ns_more_is_stale() -> None:
 def test_a_stamp_far_in_the_future_is_stale_not_fresh_forever() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.update_frame(_frame("front", T0 + 51 * MS))  # stamped on another clock
-    agg.update_frame(_frame("wrist", T0 + 1 * MS))  # within the limit: tolerated
+    agg.read(_frame("front", T0 + 51 * MS))  # stamped on another clock
+    agg.read(_frame("wrist", T0 + 1 * MS))  # within the limit: tolerated
     ws = agg.snapshot()
     assert ws.diagnostics["front"].stale
     assert ws.diagnostics["front"].age_ms == pytest.approx(-51.0)
@@ -240,7 +240,7 @@ def test_a_stamp_far_in_the_future_is_stale_not_fresh_forever() -> None:
 def test_sample_goes_stale_as_the_clock_advances() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.update_joint_state(_joints(T0))
+    agg.aggregator.update_joint_state(_joints(T0))
     assert not agg.snapshot().diagnostics[JOINT_STATE_COMPONENT].stale
     clock.advance_ms(100.5)
     assert agg.snapshot().diagnostics[JOINT_STATE_COMPONENT].stale
@@ -250,11 +250,11 @@ def test_an_older_joint_state_does_not_replace_a_newer_one() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
     new_js = _joints(T0, 1.0)
-    agg.update_joint_state(new_js)
-    agg.update_joint_state(_joints(T0 - MS, 2.0))
+    agg.aggregator.update_joint_state(new_js)
+    agg.aggregator.update_joint_state(_joints(T0 - MS, 2.0))
     assert agg.snapshot().joint_state is new_js
     same_stamp = _joints(T0, 3.0)
-    agg.update_joint_state(same_stamp)
+    agg.aggregator.update_joint_state(same_stamp)
     assert agg.snapshot().joint_state is same_stamp
 
 
@@ -268,8 +268,8 @@ def test_image_frames_are_the_same_objects_over_the_same_pixels() -> None:
     raw = bytearray(range(12))
     front = _frame("front", T0, data=pixels)
     wrist = _frame("wrist", T0, data=raw)
-    agg.update_frame(front)
-    agg.update_frame(wrist)
+    agg.read(front)
+    agg.read(wrist)
     ws = agg.snapshot()
     assert ws.image_frames is not None
     assert ws.image_frames["front"] is front
@@ -283,7 +283,7 @@ def test_image_frames_are_the_same_objects_over_the_same_pixels() -> None:
 def test_image_frames_only_hold_sensors_that_delivered() -> None:
     agg = _aggregator(FakeClock())
     front = _frame("front", T0)
-    agg.update_frame(front)
+    agg.read(front)
     ws = agg.snapshot()
     assert ws.image_frames == {"front": front}
     assert ws.diagnostics["wrist"].stale
@@ -293,7 +293,7 @@ def test_stale_frames_are_still_delivered() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
     front = _frame("front", T0)
-    agg.update_frame(front)
+    agg.read(front)
     clock.advance_ms(500)
     ws = agg.snapshot()
     assert ws.diagnostics["front"].stale
@@ -303,20 +303,20 @@ def test_stale_frames_are_still_delivered() -> None:
 
 def test_snapshot_does_not_alias_internal_state() -> None:
     agg = _aggregator(FakeClock())
-    agg.update_frame(_frame("front", T0))
+    agg.read(_frame("front", T0))
     first = agg.snapshot()
-    agg.update_frame(_frame("wrist", T0))
+    agg.read(_frame("wrist", T0))
     assert first.image_frames is not None
     assert set(first.image_frames) == {"front"}
 
 
 def test_unknown_sensor_frame_or_failure_is_rejected_naming_the_declared_ones() -> None:
     agg = _aggregator(FakeClock())
-    agg.update_frame(_frame("rear", T0))
+    agg.read(_frame("rear", T0))
     with pytest.raises(ROSConfigError, match="unknown sensor 'rear'; declared: front, wrist"):
         agg.snapshot()
     agg.frames.clear()
-    agg.mark_stale("rear")
+    agg.read_stale("rear")
     with pytest.raises(ROSConfigError, match="unknown sensor 'rear'"):
         agg.snapshot()
 
@@ -354,11 +354,11 @@ def test_joint_state_can_be_optional() -> None:
 def test_error_makes_a_fresh_component_unhealthy_until_cleared() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.update_joint_state(_joints(T0))
-    agg.update_frame(_frame("front", T0))
-    agg.update_frame(_frame("wrist", T0))
-    agg.set_error(JOINT_STATE_COMPONENT, "read_state timed out")
-    agg.fail("wrist", "USB unplugged")
+    agg.aggregator.update_joint_state(_joints(T0))
+    agg.read(_frame("front", T0))
+    agg.read(_frame("wrist", T0))
+    agg.aggregator.set_error(JOINT_STATE_COMPONENT, "read_state timed out")
+    agg.read_failed("wrist", "USB unplugged")
     ws = agg.snapshot()
     diag = ws.diagnostics[JOINT_STATE_COMPONENT]
     assert not diag.stale
@@ -366,12 +366,12 @@ def test_error_makes_a_fresh_component_unhealthy_until_cleared() -> None:
     assert not diag.healthy
     assert ws.stale_components == [JOINT_STATE_COMPONENT, "wrist"]
     assert ws.stale_required == [JOINT_STATE_COMPONENT]
-    agg.set_error(JOINT_STATE_COMPONENT, "still timing out")
-    agg.fail("wrist", "USB unplugged")
+    agg.aggregator.set_error(JOINT_STATE_COMPONENT, "still timing out")
+    agg.read_failed("wrist", "USB unplugged")
     assert agg.snapshot().diagnostics[JOINT_STATE_COMPONENT].error == "still timing out"
-    agg.clear_error(JOINT_STATE_COMPONENT)
-    agg.clear_error("front")  # none set: no-op
-    agg.fail("wrist", "USB unplugged")
+    agg.aggregator.clear_error(JOINT_STATE_COMPONENT)
+    agg.aggregator.clear_error("front")  # none set: no-op
+    agg.read_failed("wrist", "USB unplugged")
     ws = agg.snapshot()
     assert ws.diagnostics[JOINT_STATE_COMPONENT].healthy
     assert ws.stale_components == ["wrist"]
@@ -381,9 +381,9 @@ def test_error_makes_a_fresh_component_unhealthy_until_cleared() -> None:
 def test_error_on_undeclared_component_is_rejected() -> None:
     agg = _aggregator(FakeClock())
     with pytest.raises(ROSConfigError, match="unknown component 'hal'"):
-        agg.set_error("hal", "boom")
+        agg.aggregator.set_error("hal", "boom")
     with pytest.raises(ROSConfigError, match="unknown component 'hal'"):
-        agg.clear_error("hal")
+        agg.aggregator.clear_error("hal")
 
 
 # --- telemetry ------------------------------------------------------------------------------------
@@ -392,7 +392,7 @@ def test_error_on_undeclared_component_is_rejected() -> None:
 def test_staleness_latches_once_per_transition(spans: InMemorySpanExporter) -> None:
     clock = FakeClock()
     agg = _feed(WorldStateAggregator(sensors=_cams(("front", 50.0, True)), clock=clock))
-    agg.update_joint_state(_joints(T0))
+    agg.aggregator.update_joint_state(_joints(T0))
     agg.snapshot()
     # The camera has not delivered yet: it latches once, the joint state does not.
     assert _events(spans) == [
@@ -403,10 +403,10 @@ def test_staleness_latches_once_per_transition(spans: InMemorySpanExporter) -> N
     assert len(_events(spans)) == 1, "a component that stays stale must not emit again"
 
     spans.clear()
-    agg.update_frame(_frame("front", clock.now_ns))
+    agg.read(_frame("front", clock.now_ns))
     agg.snapshot()  # recovery: no event
     clock.advance_ms(60)
-    agg.update_joint_state(_joints(clock.now_ns))
+    agg.aggregator.update_joint_state(_joints(clock.now_ns))
     agg.snapshot()  # front is 60 ms old now
     agg.snapshot()
     assert _events(spans) == [
@@ -414,10 +414,10 @@ def test_staleness_latches_once_per_transition(spans: InMemorySpanExporter) -> N
     ]
 
     spans.clear()
-    agg.update_frame(_frame("front", clock.now_ns))
+    agg.read(_frame("front", clock.now_ns))
     agg.snapshot()
     clock.advance_ms(51)
-    agg.update_joint_state(_joints(clock.now_ns))
+    agg.aggregator.update_joint_state(_joints(clock.now_ns))
     agg.snapshot()
     assert [name for name, _ in _events(spans)] == [semconv.EVENT_STALENESS_LATCHED], "must latch again"
 
@@ -425,10 +425,10 @@ def test_staleness_latches_once_per_transition(spans: InMemorySpanExporter) -> N
 def test_error_latches_once_until_cleared(spans: InMemorySpanExporter) -> None:
     clock = FakeClock()
     agg = _feed(WorldStateAggregator(clock=clock))
-    agg.update_joint_state(_joints(T0))
-    agg.set_error(JOINT_STATE_COMPONENT, "bus error")
+    agg.aggregator.update_joint_state(_joints(T0))
+    agg.aggregator.set_error(JOINT_STATE_COMPONENT, "bus error")
     agg.snapshot()
-    agg.set_error(JOINT_STATE_COMPONENT, "bus error again")
+    agg.aggregator.set_error(JOINT_STATE_COMPONENT, "bus error again")
     agg.snapshot()
     agg.snapshot()
     assert _events(spans) == [
@@ -438,10 +438,10 @@ def test_error_latches_once_until_cleared(spans: InMemorySpanExporter) -> None:
         ),
     ]
     spans.clear()
-    agg.clear_error(JOINT_STATE_COMPONENT)
+    agg.aggregator.clear_error(JOINT_STATE_COMPONENT)
     agg.snapshot()
     assert _events(spans) == []
-    agg.set_error(JOINT_STATE_COMPONENT, "bus error, third time")
+    agg.aggregator.set_error(JOINT_STATE_COMPONENT, "bus error, third time")
     agg.snapshot()
     assert [name for name, _ in _events(spans)] == [semconv.EVENT_ERROR_LATCHED]
 
@@ -456,20 +456,20 @@ def test_components_stale_counter_goes_up_on_latch_and_down_on_recovery(
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {JOINT_STATE_COMPONENT: 1, "latchcam": 1}
 
-    agg.update_joint_state(_joints(clock.now_ns))
-    agg.update_frame(_frame("latchcam", clock.now_ns))
+    agg.aggregator.update_joint_state(_joints(clock.now_ns))
+    agg.read(_frame("latchcam", clock.now_ns))
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {}
 
-    agg.fail("latchcam", "decoder failed")  # fresh but its read failed: unhealthy, counted once
+    agg.read_failed("latchcam", "decoder failed")  # fresh but its read failed: unhealthy, counted once
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {"latchcam": 1}
     clock.advance_ms(60)  # now also stale: still one unhealthy component
-    agg.fail("latchcam", "decoder failed")
+    agg.read_failed("latchcam", "decoder failed")
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {"latchcam": 1}
-    agg.update_frame(_frame("latchcam", clock.now_ns))
-    agg.update_joint_state(_joints(clock.now_ns))
+    agg.read(_frame("latchcam", clock.now_ns))
+    agg.aggregator.update_joint_state(_joints(clock.now_ns))
     agg.snapshot()
     assert _delta(_updown(metric_reader), before) == {}
 
@@ -543,10 +543,10 @@ def test_concurrent_joint_updates_never_tear_a_snapshot() -> None:
 def test_a_readers_stale_verdict_holds_for_one_snapshot_over_a_frame_within_its_age() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.update_joint_state(_joints(T0))
-    agg.update_frame(_frame("front", T0))
+    agg.aggregator.update_joint_state(_joints(T0))
+    agg.read(_frame("front", T0))
     clock.advance_ms(10)
-    agg.mark_stale("front", age_ms=75.0)
+    agg.read_stale("front", age_ms=75.0)
     marked = agg.snapshot()
     assert marked.diagnostics["front"].stale
     assert marked.diagnostics["front"].age_ms == 75.0
@@ -561,9 +561,9 @@ def test_a_readers_stale_verdict_holds_for_one_snapshot_over_a_frame_within_its_
 def test_a_stale_mark_without_an_age_keeps_the_measured_one() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.update_frame(_frame("wrist", T0))
+    agg.read(_frame("wrist", T0))
     clock.advance_ms(20)
-    agg.mark_stale("wrist")
+    agg.read_stale("wrist")
     diagnosis = agg.snapshot().diagnostics["wrist"]
     assert diagnosis.stale
     assert diagnosis.age_ms == pytest.approx(20.0)
@@ -572,9 +572,9 @@ def test_a_stale_mark_without_an_age_keeps_the_measured_one() -> None:
 def test_a_failed_read_is_the_sensors_error_for_that_snapshot_only() -> None:
     clock = FakeClock()
     agg = _aggregator(clock)
-    agg.update_frame(_frame("wrist", T0))
-    agg.fail("wrist", "USB unplugged")
-    agg.set_error(JOINT_STATE_COMPONENT, "bus error")
+    agg.read(_frame("wrist", T0))
+    agg.read_failed("wrist", "USB unplugged")
+    agg.aggregator.set_error(JOINT_STATE_COMPONENT, "bus error")
     failed = agg.snapshot()
     assert failed.diagnostics["wrist"].error == "USB unplugged"
     assert failed.image_frames is not None

@@ -19,7 +19,7 @@ from openral_core import ROSConfigError, ROSDependencyMissing
 from openral_core.config import validate_model
 from openral_core.perception import ObjectsMetadata
 from openral_perception.detectors.buffers import BufferDetector
-from openral_perception.detectors.factory import ObjectsParams, ObjectsSettings, objects_settings
+from openral_perception.detectors.objects_params import ObjectsParams, ObjectsSettings, objects_settings
 from openral_perception.detectors.rtdetr import identify_rtdetr_outputs, model_input, postprocess_rtdetr
 from openral_perception.detectors.tier import DetectorTier, require_runnable
 from openral_perception.frame import DetectorFrame
@@ -99,7 +99,7 @@ class ObjectsDetector(BufferDetector[ObjectsMetadata]):
 
     @classmethod
     def from_config(cls, params: Mapping[str, Any], *, base_dir: Path | None = None) -> ObjectsDetector:
-        """Plugin constructor (detector ``objects``); ``params`` are :class:`~.factory.ObjectsParams`."""
+        """Plugin constructor (detector ``objects``); ``params`` are :class:`~.objects_params.ObjectsParams`."""
         return cls.from_settings(objects_settings(validate_model(ObjectsParams, dict(params)), base_dir=base_dir))
 
     @classmethod

@@ -7,16 +7,15 @@ as a third party registers its own; a kind's module is imported only when a depl
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Final
 
 from openral_core import ROSConfigError
-from openral_core.plugins import PluginRegistry
+from openral_core.plugins import DETECTORS_GROUP, PluginRegistry
 from openral_perception.detectors.base import DetectorClass, EventDetector
 from openral_perception.params import DetectorEntry
 
-DETECTORS_GROUP: Final = "openral.detectors"
-
-DETECTOR_REGISTRY: PluginRegistry[Any] = PluginRegistry(DETECTORS_GROUP, kind="detector", field="detectors[].kind")
+DETECTOR_REGISTRY: PluginRegistry[DetectorClass] = PluginRegistry(
+    DETECTORS_GROUP, kind="detector", field="detectors[].kind"
+)
 """``kind -> detector class``; an unknown kind is a ``ROSConfigError`` listing the known ones."""
 
 
@@ -33,7 +32,7 @@ def build_detector(entry: DetectorEntry, *, base_dir: Path | None = None, field:
             ``<field>.<params_field>.<key>``.
     """
     prefix = f"{field}." if field else ""
-    cls: DetectorClass = DETECTOR_REGISTRY.resolve(entry.config.kind, field=prefix + entry.kind_field)
+    cls = DETECTOR_REGISTRY.resolve(entry.config.kind, field=prefix + entry.kind_field)
     try:
         return cls.from_config(entry.config.params, base_dir=base_dir)
     except ROSConfigError as exc:

@@ -110,57 +110,54 @@ class MujocoCameraParams(BaseModel):
 class MujocoCameraSensorReader(SlotReader):
     """Renders one camera of a running :class:`MujocoTwinHAL` on its own thread; serves the latest frame.
 
+    Built from the sensor's block and its validated ``backend_params``, whole: fps is the render
+    rate (the delivered rate is lower when one render takes longer than a period), width and
+    height default to 320x240, encoding is ``rgb8`` (as MuJoCo renders) or ``bgr8``.
+
     Args:
-        sensor_id: Reader id.
+        config: The sensor's block of the deployment.
+        params: The backend's options.
         hal: The twin whose scene is rendered.
-        camera: Camera name in the twin's model.
-        fps: Render rate; delivered rate is lower when one render takes longer than a period.
-        width / height: Image size in pixels.
-        encoding: ``RGB8`` (as MuJoCo renders) or ``BGR8``.
-        default_max_age_ms: Staleness limit when ``read_latest`` is given none.
-        gl: OpenGL backend; ``None`` chooses at ``open()`` (see :func:`resolve_gl_backend`).
-        mesh_cell_mm: Grid the render copy's meshes are simplified to; 0 keeps them whole.
+        robot: The manifest whose first ``mujoco.cameras`` entry is the camera when ``params``
+            names none (the twin's own manifest when ``None``).
+
+    Attributes:
+        camera: The camera's name in the twin's model.
+        width / height: The image size rendered.
+        gl: The OpenGL backend: ``params.gl``, or the one chosen at ``open()`` (see :func:`resolve_gl_backend`).
 
     Raises:
-        ROSConfigError: ``hal`` is not a twin, an unknown camera, an unsupported encoding or a
-            non-positive fps.
+        ROSConfigError: ``hal`` is not a twin, an unknown camera or none to default to, or an
+            unsupported encoding.
     """
 
     def __init__(
         self,
+        config: SensorReaderConfig,
+        params: MujocoCameraParams,
         *,
-        sensor_id: str,
         hal: MujocoTwinHAL,
-        camera: str,
-        fps: float = 30.0,
-        width: int = DEFAULT_WIDTH,
-        height: int = DEFAULT_HEIGHT,
-        encoding: FrameEncoding = FrameEncoding.RGB8,
-        default_max_age_ms: float = 100.0,
-        gl: GLBackend | None = None,
-        mesh_cell_mm: float = DEFAULT_MESH_CELL_MM,
+        robot: RobotManifest | None = None,
     ) -> None:
+        sensor_id = config.sensor_id
         _require_twin(hal, sensor_id)
-        if not fps > 0:
-            raise ROSConfigError(f"sensor '{sensor_id}': fps must be positive, got {fps}")
-        if FrameEncoding(encoding) not in (FrameEncoding.RGB8, FrameEncoding.BGR8):
+        if config.encoding not in (FrameEncoding.RGB8, FrameEncoding.BGR8):
             raise ROSConfigError(
-                f"sensor '{sensor_id}': the mujoco_camera backend cannot deliver {FrameEncoding(encoding).value}",
+                f"sensor '{sensor_id}': the mujoco_camera backend cannot deliver {config.encoding.value}",
                 field="encoding",
                 hint="use encoding rgb8 or bgr8",
             )
-        self.camera_id = _camera_id(hal.model, camera, sensor_id)
+        self.config = config
+        self.params = params
         self.sensor_id = sensor_id
         self.hal = hal
-        self.camera = camera
-        self.fps = float(fps)
-        self.width = width
-        self.height = height
-        self.encoding = FrameEncoding(encoding)
-        self.gl: GLBackend | None = gl
-        self.mesh_cell_mm = mesh_cell_mm
+        self.camera = params.camera or _default_camera(robot or hal.manifest, hal, config)
+        self.camera_id = _camera_id(hal.model, self.camera, sensor_id)
+        self.width = config.width or DEFAULT_WIDTH
+        self.height = config.height or DEFAULT_HEIGHT
+        self.gl: GLBackend | None = params.gl
         self._triangles = (0, 0)
-        self._slot = LatestFrameSlot(sensor_id, default_max_age_ms=default_max_age_ms)
+        self._slot = LatestFrameSlot(sensor_id, default_max_age_ms=config.max_age_ms)
         self._stop = threading.Event()
         self._ready = threading.Event()
         self._setup_error: Exception | None = None
@@ -193,33 +190,8 @@ class MujocoCameraSensorReader(SlotReader):
             ROSConfigError: A wrong parameter (named, with the allowed keys), another HAL, or
                 an unknown camera (the message lists the model's cameras).
         """
-        prefix = backend_params_field(config)
         params = validate_backend_params(MujocoCameraParams, config, backend="mujoco_camera")
-        twin = _require_twin(hal, config.sensor_id)
-        camera = params.camera
-        if camera is None:
-            manifest = robot or twin.manifest
-            declared = manifest.mujoco.cameras if manifest.mujoco is not None else []
-            if not declared:
-                raise ROSConfigError(
-                    f"robot '{manifest.robot_id}' declares no camera and sensor '{config.sensor_id}' names none; "
-                    f"the model has: {', '.join(_camera_names(twin.model)) or 'no cameras'}",
-                    field=f"{prefix}.camera",
-                    hint="set backend_params.camera",
-                )
-            camera = declared[0]
-        return cls(
-            sensor_id=config.sensor_id,
-            hal=twin,
-            camera=camera,
-            fps=config.fps,
-            width=config.width or DEFAULT_WIDTH,
-            height=config.height or DEFAULT_HEIGHT,
-            encoding=config.encoding,
-            default_max_age_ms=config.max_age_ms,
-            gl=params.gl,
-            mesh_cell_mm=params.mesh_cell_mm,
-        )
+        return cls(config, params, hal=_require_twin(hal, config.sensor_id), robot=robot)
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -256,7 +228,7 @@ class MujocoCameraSensorReader(SlotReader):
             error = self._setup_error
             self.close()
             raise error
-        _log.info("mujoco camera opened", sensor=self.sensor_id, camera=self.camera, gl=self.gl, fps=self.fps)
+        _log.info("mujoco camera opened", sensor=self.sensor_id, camera=self.camera, gl=self.gl, fps=self.config.fps)
 
     def close(self) -> None:
         """Stop and join the render thread, which frees its GL context. Idempotent."""
@@ -284,8 +256,8 @@ class MujocoCameraSensorReader(SlotReader):
             "gl": self.gl,
             "width": self.width,
             "height": self.height,
-            "encoding": self.encoding.value,
-            "requested_fps": self.fps,
+            "encoding": self.config.encoding.value,
+            "requested_fps": self.config.fps,
             "delivered_fps": round(self.delivered_fps, 2),
             "frames": self._slot.frames_published,
             "skipped": self._skipped,
@@ -309,7 +281,12 @@ class MujocoCameraSensorReader(SlotReader):
                 gl = self.gl = resolve_gl_backend(self.gl)
                 os.environ.setdefault("MUJOCO_GL", gl)
                 renderer = OffscreenRenderer(
-                    self.hal.model, self.camera_id, self.width, self.height, gl, mesh_cell_m=self.mesh_cell_mm / 1e3
+                    self.hal.model,
+                    self.camera_id,
+                    self.width,
+                    self.height,
+                    gl,
+                    mesh_cell_m=self.params.mesh_cell_mm / 1e3,
                 )
                 self._triangles = renderer.triangles
                 renderer.render()  # warm-up: the first draw compiles shaders and uploads meshes
@@ -319,7 +296,7 @@ class MujocoCameraSensorReader(SlotReader):
                 return
             finally:
                 self._ready.set()
-            period_ns = round(1e9 / self.fps)
+            period_ns = round(1e9 / self.config.fps)
             due_ns = time.monotonic_ns() + period_ns
             while True:
                 now_ns = time.monotonic_ns()
@@ -356,7 +333,7 @@ class MujocoCameraSensorReader(SlotReader):
             lock_ns = time.perf_counter_ns() - t_lock
         start_ns = time.perf_counter_ns()
         rgb = renderer.render()
-        if self.encoding is FrameEncoding.BGR8:
+        if self.config.encoding is FrameEncoding.BGR8:
             pixels = np.ascontiguousarray(rgb[::-1, :, ::-1])
         else:
             pixels = np.ascontiguousarray(rgb[::-1])
@@ -366,7 +343,7 @@ class MujocoCameraSensorReader(SlotReader):
         self._sim_times[seq % _SIM_TIME_RING] = (seq, float(private.time))
         self._slot.publish(
             frame_from_array(
-                self.sensor_id, pixels, stamp_ns=stamp_ns, seq=seq, encoding=self.encoding, frame_id=self.camera
+                self.sensor_id, pixels, stamp_ns=stamp_ns, seq=seq, encoding=self.config.encoding, frame_id=self.camera
             )
         )
         self._seq = seq + 1
@@ -374,6 +351,23 @@ class MujocoCameraSensorReader(SlotReader):
         self._render_ms = render_ms if not previous else previous + _RENDER_MS_SMOOTHING * (render_ms - previous)
         self._render_ms_max = max(self._render_ms_max, render_ms)
         self._lock_us_max = max(self._lock_us_max, lock_ns / 1e3)
+
+
+def _default_camera(manifest: RobotManifest, twin: MujocoTwinHAL, config: SensorReaderConfig) -> str:
+    """The robot's first declared camera, for a sensor that names none.
+
+    Raises:
+        ROSConfigError: The robot declares no camera (the message lists the model's).
+    """
+    declared = manifest.mujoco.cameras if manifest.mujoco is not None else []
+    if not declared:
+        raise ROSConfigError(
+            f"robot '{manifest.robot_id}' declares no camera and sensor '{config.sensor_id}' names none; "
+            f"the model has: {', '.join(_camera_names(twin.model)) or 'no cameras'}",
+            field=f"{backend_params_field(config)}.camera",
+            hint="set backend_params.camera",
+        )
+    return declared[0]
 
 
 def _require_twin(hal: Any, sensor_id: str) -> MujocoTwinHAL:

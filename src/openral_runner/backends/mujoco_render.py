@@ -1,6 +1,7 @@
 """Headless offscreen rendering of a MuJoCo model: the OpenGL backend choice and a thread-bound renderer.
 
-Used by the ``mujoco_camera`` sensor backend only. ``mujoco`` picks its default GL backend from
+Used by the ``mujoco_camera`` sensor backend and by the simulator envs that render their own cameras
+(:mod:`openral_sim.envs.mujoco_views`, ALOHA). ``mujoco`` picks its default GL backend from
 ``MUJOCO_GL`` once, when it is imported (before this module runs), so the renderer here creates
 its context explicitly from ``mujoco.egl`` or ``mujoco.osmesa``. PyOpenGL binds one platform per
 process (``PYOPENGL_PLATFORM``, set by whichever of those is imported first), so one process

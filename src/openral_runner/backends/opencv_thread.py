@@ -18,7 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, overload
 
 import numpy as np
 import structlog
@@ -32,6 +32,7 @@ from openral_core import (
     ROSRuntimeError,
     SensorReaderConfig,
 )
+from openral_core.config import validate_model
 from openral_core.config_files import is_regular_file
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
 from openral_runner.sensor_reader import require_video_file, validate_backend_params
@@ -76,9 +77,11 @@ JOIN_TIMEOUT_S = 2.0
 
 
 class OpenCVThreadParams(BaseModel):
-    """``backend_params`` of the ``opencv_thread`` backend.
+    """``backend_params`` of the ``opencv_thread`` backend: the one place each of its options is named and defaulted.
 
-    fps, width, height, encoding and max_age_ms come from the sensor's own fields.
+    fps (set on live devices; the pacing rate of paced files), width and height (open fails if the
+    source delivers another size), encoding (``bgr8``, OpenCV's order, ``rgb8`` or ``mono8``) and
+    max_age_ms come from the sensor's own fields (:class:`~openral_core.SensorReaderConfig`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -86,86 +89,93 @@ class OpenCVThreadParams(BaseModel):
     device: int | str = Field(description="device index, device node, stream URL or video file path")
     loop: bool = Field(default=False, description="video files: start again at the end")
     paced: bool | None = Field(
-        default=None, description="video files: release frames at the requested fps (default true for files)"
+        default=None,
+        description="video files: release frame k at t0 + k / fps (late frames skip slots, never burst); unpaced "
+        "files are read as fast as they decode (default true for files)",
     )
-    api_preference: ApiPreference = "any"
+    api_preference: ApiPreference = Field(default="any", description="OpenCV capture API")
     fourcc: str | None = Field(default=None, min_length=4, max_length=4, description="pixel format, e.g. MJPG")
-    buffer_size: int | None = Field(default=None, ge=1, description="driver frame queue length (CAP_PROP_BUFFERSIZE)")
+    buffer_size: int | None = Field(
+        default=None, ge=1, description="driver frame queue length (CAP_PROP_BUFFERSIZE); 1 keeps the frame freshest"
+    )
     max_read_failures: int = Field(default=10, ge=1, description="live sources: failed reads in a row before failing")
 
 
 class OpenCVThreadSensorReader(SlotReader):
     """Captures one camera or video on a background thread; serves its latest frame.
 
-    Args:
-        sensor_id: Reader id.
-        device: Device index, device node (``/dev/video0``), stream URL or video file path.
-        fps: Requested frame rate (set on live devices; the pacing rate of paced files).
-        width / height: Requested size; open fails if the source delivers another size.
-        encoding: ``BGR8`` (OpenCV's native order), ``RGB8`` or ``MONO8``.
-        default_max_age_ms: Staleness limit when ``read_latest`` is given none.
-        loop: Video files: rewind at the end instead of stopping.
-        paced: Video files: release frame k at ``t0 + k / fps`` (late frames skip slots,
-            never burst); unpaced files are read as fast as they decode. Default: true for files.
-        api_preference: OpenCV capture API (``any``, ``v4l2``, ``ffmpeg``, ``gstreamer``).
-        fourcc: Pixel format to request from a live device (``MJPG``, ``YUYV``).
-        buffer_size: Driver frame queue length; 1 keeps the served frame freshest.
-        max_read_failures: Failed reads in a row after which a live source is declared failed.
-        clock_ns: Monotonic clock of the capture stamps.
+    Built from the sensor's block and its validated ``backend_params``, whole::
+
+        OpenCVThreadSensorReader(config, params)
+
+    or in the specification's keyword form, ``OpenCVThreadSensorReader(*, sensor_id, device, fps=30,
+    width=None, height=None, encoding=BGR8, default_max_age_ms=100)``, where any further keyword is
+    one of :class:`OpenCVThreadParams` (``loop=True``). Both are validated by the same two models.
+
+    Attributes:
+        config: The sensor's fields (fps, size, encoding, staleness limit).
+        params: The backend's options.
+        device: The source as opened: a device index, or a node, URL or file path.
+        is_file: Whether the source is a video file.
+        paced: Whether frames are released at ``config.fps`` (``params.paced``, default true for files).
 
     Raises:
-        ROSConfigError: An unsupported encoding, a non-positive fps, or loop/paced for a live source.
+        ROSConfigError: A wrong or missing option (named), an encoding other than bgr8/rgb8/mono8,
+            or loop/paced for a live source.
     """
 
+    @overload
+    def __init__(
+        self, config: SensorReaderConfig, params: OpenCVThreadParams, *, clock_ns: Callable[[], int] = ...
+    ) -> None: ...
+
+    @overload
     def __init__(
         self,
         *,
         sensor_id: str,
         device: int | str | Path,
-        fps: float = 30.0,
-        width: int | None = None,
-        height: int | None = None,
-        encoding: FrameEncoding = FrameEncoding.BGR8,
-        default_max_age_ms: float = 100.0,
-        loop: bool = False,
-        paced: bool | None = None,
-        api_preference: ApiPreference = "any",
-        fourcc: str | None = None,
-        buffer_size: int | None = None,
-        max_read_failures: int = 10,
+        fps: float = ...,
+        width: int | None = ...,
+        height: int | None = ...,
+        encoding: FrameEncoding = ...,
+        default_max_age_ms: float = ...,
+        clock_ns: Callable[[], int] = ...,
+        **params: Any,
+    ) -> None: ...
+
+    def __init__(
+        self,
+        config: SensorReaderConfig | None = None,
+        params: OpenCVThreadParams | None = None,
+        *,
         clock_ns: Callable[[], int] = time.monotonic_ns,
+        **keywords: Any,
     ) -> None:
-        if isinstance(device, Path):
-            device = str(device)
-        if isinstance(device, str) and device.isdigit():
-            device = int(device)
-        if not fps > 0:
-            raise ROSConfigError(f"sensor '{sensor_id}': fps must be positive, got {fps}")
-        if FrameEncoding(encoding) not in {FrameEncoding.BGR8, FrameEncoding.RGB8, FrameEncoding.MONO8}:
+        if config is None or params is None:
+            config, params = _models_from_keywords(keywords)
+        sensor_id = config.sensor_id
+        if config.encoding not in {FrameEncoding.BGR8, FrameEncoding.RGB8, FrameEncoding.MONO8}:
             raise ROSConfigError(
-                f"sensor '{sensor_id}': the opencv_thread backend cannot deliver {encoding}",
+                f"sensor '{sensor_id}': the opencv_thread backend cannot deliver {config.encoding}",
                 hint="use encoding bgr8, rgb8 or mono8",
             )
+        device = params.device
+        if isinstance(device, str) and device.isdigit():
+            device = int(device)
         self.is_file = isinstance(device, str) and _is_file_path(device)
-        if not self.is_file and (loop or paced):
+        if not self.is_file and (params.loop or params.paced):
             raise ROSConfigError(
                 f"sensor '{sensor_id}': loop and paced apply to video files only, not to {device!r}",
                 hint="remove loop/paced from backend_params",
             )
+        self.config = config
+        self.params = params
         self.sensor_id = sensor_id
         self.device: int | str = device
-        self.fps = float(fps)
-        self.width = width
-        self.height = height
-        self.encoding = FrameEncoding(encoding)
-        self.loop = loop
-        self.paced = self.is_file if paced is None else paced
-        self.api_preference = api_preference
-        self.fourcc = fourcc
-        self.buffer_size = buffer_size
-        self.max_read_failures = max_read_failures
+        self.paced = self.is_file if params.paced is None else params.paced
         self._clock_ns = clock_ns
-        self._slot = LatestFrameSlot(sensor_id, default_max_age_ms=default_max_age_ms, clock_ns=clock_ns)
+        self._slot = LatestFrameSlot(sensor_id, default_max_age_ms=config.max_age_ms, clock_ns=clock_ns)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._seq = 0
@@ -194,24 +204,10 @@ class OpenCVThreadSensorReader(SlotReader):
             ROSConfigError: A wrong or missing parameter; the message names it and the allowed keys.
         """
         params = validate_backend_params(OpenCVThreadParams, config, backend="opencv_thread")
-        device = params.device
-        if isinstance(device, str) and _is_file_path(device):
-            device = str(require_video_file(device, base_dir, sensor_id=config.sensor_id))
-        return cls(
-            sensor_id=config.sensor_id,
-            device=device,
-            fps=config.fps,
-            width=config.width,
-            height=config.height,
-            encoding=config.encoding,
-            default_max_age_ms=config.max_age_ms,
-            loop=params.loop,
-            paced=params.paced,
-            api_preference=params.api_preference,
-            fourcc=params.fourcc,
-            buffer_size=params.buffer_size,
-            max_read_failures=params.max_read_failures,
-        )
+        if isinstance(params.device, str) and _is_file_path(params.device):
+            path = require_video_file(params.device, base_dir, sensor_id=config.sensor_id)
+            params = params.model_copy(update={"device": str(path)})
+        return cls(config, params)
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -268,14 +264,14 @@ class OpenCVThreadSensorReader(SlotReader):
             "sensor_id": self.sensor_id,
             "device": str(self.device),
             "source": "file" if self.is_file else "live",
-            "requested_fps": self.fps,
+            "requested_fps": self.config.fps,
             "delivered_fps": round(self.delivered_fps, 2),
             "measured_fps": None if self._measured_fps is None else round(self._measured_fps, 2),
             "file_fps": self._file_fps,
-            "requested_size": (self.width, self.height),
+            "requested_size": (self.config.width, self.config.height),
             "width": width,
             "height": height,
-            "encoding": self.encoding.value,
+            "encoding": self.config.encoding.value,
             "frames": self._slot.frames_published,
             "dropped": self._dropped,
             "read_failures": self._read_failures,
@@ -287,13 +283,16 @@ class OpenCVThreadSensorReader(SlotReader):
 
     def _open_capture(self) -> Any:
         """A new, opened ``cv2.VideoCapture`` on the source (overridden in tests)."""
-        api = _API_CONSTANTS[self.api_preference]
+        api = _API_CONSTANTS[self.params.api_preference]
         if api != cv2.CAP_ANY and not cv2.videoio_registry.hasBackend(api):
             hint = (
-                "use the gstreamer sensor backend" if self.api_preference == "gstreamer" else "use api_preference: any"
+                "use the gstreamer sensor backend"
+                if self.params.api_preference == "gstreamer"
+                else "use api_preference: any"
             )
             raise ROSConfigError(
-                f"sensor '{self.sensor_id}': this OpenCV build has no {self.api_preference} capture API", hint=hint
+                f"sensor '{self.sensor_id}': this OpenCV build has no {self.params.api_preference} capture API",
+                hint=hint,
             )
         if self.is_file and not is_regular_file(Path(str(self.device))):
             raise ROSConfigError(
@@ -323,15 +322,15 @@ class OpenCVThreadSensorReader(SlotReader):
         if self.is_file:
             self._file_fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
             return
-        if self.fourcc is not None:
-            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.fourcc))
-        if self.width is not None:
-            cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
-        if self.height is not None:
-            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
-        cap.set(cv2.CAP_PROP_FPS, self.fps)
-        if self.buffer_size is not None:
-            cap.set(cv2.CAP_PROP_BUFFERSIZE, self.buffer_size)
+        if self.params.fourcc is not None:
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.params.fourcc))
+        if self.config.width is not None:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.config.width)
+        if self.config.height is not None:
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.config.height)
+        cap.set(cv2.CAP_PROP_FPS, self.config.fps)
+        if self.params.buffer_size is not None:
+            cap.set(cv2.CAP_PROP_BUFFERSIZE, self.params.buffer_size)
 
     def _first_frame(self, cap: Any) -> tuple[int, np.ndarray]:
         """Read one frame synchronously; check the delivered size against the requested one."""
@@ -341,7 +340,7 @@ class OpenCVThreadSensorReader(SlotReader):
                 raise ROSConfigError(f"sensor '{self.sensor_id}': video file {self.device} holds no frame")
             raise ROSHardwareError(f"sensor '{self.sensor_id}': camera {self.device!r} opened but delivered no frame")
         height, width = captured[1].shape[:2]
-        wanted = (self.width or width, self.height or height)
+        wanted = (self.config.width or width, self.config.height or height)
         if wanted != (width, height):
             what = "the video file is" if self.is_file else "the device delivers"
             raise ROSConfigError(
@@ -362,22 +361,22 @@ class OpenCVThreadSensorReader(SlotReader):
         ok, pixels = cap.retrieve()
         if not ok or pixels is None:
             return None
-        code = _CONVERSIONS.get((pixels.ndim, self.encoding))
+        code = _CONVERSIONS.get((pixels.ndim, self.config.encoding))
         if code is not None:
             pixels = cv2.cvtColor(pixels, code)
         return stamp_ns, pixels
 
     def _publish(self, stamp_ns: int, pixels: np.ndarray) -> None:
         self._slot.publish(
-            frame_from_array(self.sensor_id, pixels, stamp_ns=stamp_ns, seq=self._seq, encoding=self.encoding)
+            frame_from_array(self.sensor_id, pixels, stamp_ns=stamp_ns, seq=self._seq, encoding=self.config.encoding)
         )
         self._seq += 1
 
     def _run(self, cap: Any, t0_ns: int, stop: threading.Event) -> None:
         """Capture until stopped, at the end of a non-looping file, or until a failure is latched."""
-        period_ns = round(1e9 / self.fps)
+        period_ns = round(1e9 / self.config.fps)
         due_ns = t0_ns + period_ns
-        check_at_ns = t0_ns + round(max(FPS_CHECK_S, FPS_CHECK_FRAMES / self.fps) * 1e9)
+        check_at_ns = t0_ns + round(max(FPS_CHECK_S, FPS_CHECK_FRAMES / self.config.fps) * 1e9)
         failures = 0
         try:
             while not stop.is_set():
@@ -386,7 +385,7 @@ class OpenCVThreadSensorReader(SlotReader):
                     if stop.is_set():
                         break
                 captured = self._capture(cap)
-                if captured is None and self.is_file and self.loop:
+                if captured is None and self.is_file and self.params.loop:
                     cap = self._rewind(cap)
                     captured = self._capture(cap)
                     if captured is None:
@@ -398,7 +397,7 @@ class OpenCVThreadSensorReader(SlotReader):
                         return
                     failures += 1
                     self._read_failures += 1
-                    if failures >= self.max_read_failures:
+                    if failures >= self.params.max_read_failures:
                         raise ROSRuntimeError(
                             f"sensor '{self.sensor_id}': camera {self.device!r} delivered no frame in "
                             f"{failures} reads in a row: check the cable and the device"
@@ -456,17 +455,38 @@ class OpenCVThreadSensorReader(SlotReader):
         """Log once whether the source delivers the requested rate."""
         measured = intervals * 1e9 / elapsed_ns if elapsed_ns > 0 else 0.0
         self._measured_fps = measured
-        if measured < (1.0 - FPS_SHORTFALL) * self.fps:
+        if measured < (1.0 - FPS_SHORTFALL) * self.config.fps:
             _log.warning(
                 "camera delivers fewer frames than requested",
                 sensor=self.sensor_id,
                 device=str(self.device),
-                requested_fps=self.fps,
+                requested_fps=self.config.fps,
                 delivered_fps=round(measured, 1),
                 hint="lower fps, request fourcc MJPG or a smaller size, or check USB bandwidth and exposure",
             )
         else:
-            _log.info("camera rate measured", sensor=self.sensor_id, requested_fps=self.fps, delivered_fps=measured)
+            _log.info(
+                "camera rate measured", sensor=self.sensor_id, requested_fps=self.config.fps, delivered_fps=measured
+            )
+
+
+def _models_from_keywords(keywords: dict[str, Any]) -> tuple[SensorReaderConfig, OpenCVThreadParams]:
+    """The specification's keyword form as the two models a deployment gives: sensor fields, then the rest."""
+    options = dict(keywords)
+    if "default_max_age_ms" in options:
+        options["max_age_ms"] = options.pop("default_max_age_ms")
+    if isinstance(options.get("device"), Path):
+        options["device"] = str(options["device"])
+    sensor = {name: options.pop(name) for name in _SENSOR_FIELDS if name in options}
+    config = validate_model(
+        SensorReaderConfig, {**sensor, "backend": "opencv_thread"}, source="OpenCVThreadSensorReader"
+    )
+    params = validate_model(OpenCVThreadParams, options, source=f"sensor '{config.sensor_id}'")
+    return config, params
+
+
+_SENSOR_FIELDS = ("sensor_id", "fps", "width", "height", "encoding", "max_age_ms")
+"""The keywords of the specification's form that are the sensor's own fields, not ``backend_params``."""
 
 
 def _is_file_path(device: str) -> bool:

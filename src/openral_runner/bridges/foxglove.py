@@ -21,7 +21,7 @@ that hand-over time for ticks and safety events, and the measurement's own monot
 
 Ticks go through :class:`~openral_observability.queued_observer.QueuedObserver` (every tick in
 order; when the queue is full the oldest is dropped and counted), thumbnails through a
-:class:`~openral_observability.latest_observer.LatestPerKeyObserver` (the newest per camera wins;
+:class:`~openral_observability.latest_observer.LatestPerKeyWorker` (the newest per camera wins;
 one still waiting is replaced and counted), each on its own worker.
 """
 
@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import JointState, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
 from openral_core.config import validate_model
-from openral_observability.latest_observer import LatestPerKeyObserver
+from openral_observability.latest_observer import LatestPerKeyWorker
 from openral_observability.observer import Thumbnail
 from openral_observability.queued_observer import QueuedObserver
 
@@ -153,7 +153,7 @@ class FoxgloveParams(BaseModel):
     host: str = Field(default="127.0.0.1", description="Interface the live server binds to.")
 
 
-class _NewestImages(LatestPerKeyObserver[str, tuple[Thumbnail, int]]):
+class _NewestImages(LatestPerKeyWorker[str, tuple[Thumbnail, int]]):
     """The newest thumbnail of each camera with its hand-over time, published on this worker."""
 
     def __init__(self, publish: Callable[[Thumbnail, int], None], *, close_timeout_s: float) -> None:

@@ -8,7 +8,8 @@ import pytest
 from pydantic import ValidationError
 
 from openral_core import ROSConfigError
-from openral_perception.detectors.factory import ObjectsParams, build_manifest_detector, objects_settings
+from openral_perception.detectors.factory import build_manifest_detector
+from openral_perception.detectors.objects_params import ObjectsParams, objects_settings
 from openral_rskill.manifest import RSkillManifest
 
 ROOT = Path(__file__).resolve().parents[3]

@@ -9,9 +9,10 @@ from typing import Any
 import pytest
 
 from openral_core import ROSConfigError, ROSDependencyMissing
+from openral_core.plugins import DETECTORS_GROUP
 from openral_perception.detectors import registry
 from openral_perception.detectors.motion import MotionDetector
-from openral_perception.detectors.registry import DETECTOR_REGISTRY, DETECTORS_GROUP, build_detector
+from openral_perception.detectors.registry import DETECTOR_REGISTRY, build_detector
 from openral_perception.detectors.scene_change import SceneChangeDetector
 from openral_perception.params import DetectorConfig, DetectorEntry, PerceptionParams
 

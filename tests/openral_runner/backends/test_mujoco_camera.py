@@ -168,7 +168,7 @@ def test_only_rgb8_and_bgr8_are_rendered() -> None:
 def test_camera_defaults_to_the_robot_manifest_first_camera_and_size_to_320x240() -> None:
     hal = MujocoTwinHAL(SO101, {"settle_s": 0})
     reader = MujocoCameraSensorReader.from_config(_config(), hal=hal, robot=SO101)
-    assert (reader.camera, reader.width, reader.height, reader.fps) == ("front", 320, 240, 30.0)
+    assert (reader.camera, reader.width, reader.height, reader.config.fps) == ("front", 320, 240, 30.0)
     no_cameras = SO101.model_copy(update={"mujoco": SO101.mujoco.model_copy(update={"cameras": []})})  # type: ignore[union-attr]
     with pytest.raises(ROSConfigError, match=r"declares no camera.*front"):
         MujocoCameraSensorReader.from_config(_config(), hal=hal, robot=no_cameras)

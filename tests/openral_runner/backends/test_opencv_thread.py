@@ -32,7 +32,7 @@ from openral_core import (  # noqa: E402
     SensorFrame,
     SensorReaderConfig,
 )
-from openral_runner.backends.opencv_thread import OpenCVThreadSensorReader  # noqa: E402
+from openral_runner.backends.opencv_thread import OpenCVThreadParams, OpenCVThreadSensorReader  # noqa: E402
 from openral_runner.sensor_reader import SensorReader  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[3]
@@ -294,8 +294,11 @@ def test_from_config_passes_sensor_fields_and_resolves_relative_paths(videos: di
     )
     cam = OpenCVThreadSensorReader.from_config(config, hal=None, robot=None, base_dir=videos["short"].parent)
     assert cam.device == str(videos["short"])
-    assert (cam.fps, cam.width, cam.height, cam.encoding) == (25, 160, 120, FrameEncoding.RGB8)
-    assert cam.loop
+    assert (cam.config.fps, cam.config.width, cam.config.height) == (25, 160, 120)
+    assert cam.config.encoding is FrameEncoding.RGB8
+    assert cam.config.max_age_ms == 70
+    assert cam.params.loop
+    assert cam.params.api_preference == "ffmpeg"
     assert cam.paced
     with cam:
         assert cam.read_latest(max_age_ms=ANY_AGE_MS).encoding is FrameEncoding.RGB8
@@ -324,6 +327,17 @@ def test_invalid_arguments_are_config_errors(videos: dict[str, Path]) -> None:
         reader(videos["short"], encoding=FrameEncoding.MONO16)
     assert OpenCVThreadSensorReader(sensor_id="cam", device="2").device == 2
     assert not OpenCVThreadSensorReader(sensor_id="cam", device="/dev/video0").is_file
+
+
+def test_the_keyword_form_is_checked_by_the_models_a_deployment_is(videos: dict[str, Path]) -> None:
+    with pytest.raises(ROSConfigError, match="fps"):
+        OpenCVThreadSensorReader(sensor_id="cam", device=0, fps=0)
+    with pytest.raises(ROSConfigError, match="allowed keys") as info:
+        reader(videos["short"], lopo=True)
+    assert "did you mean 'loop'" in str(info.value)
+    cam = reader(videos["short"], fps=12, default_max_age_ms=40, loop=True)
+    assert (cam.config.sensor_id, cam.config.fps, cam.config.max_age_ms) == ("front", 12, 40)
+    assert cam.params == OpenCVThreadParams(device=str(videos["short"]), loop=True)
 
 
 class FakeLiveCapture:
@@ -431,4 +445,4 @@ def test_video_file_deployment_opens_its_camera() -> None:
         frame = cam.read_latest(max_age_ms=ANY_AGE_MS)
         assert (frame.width, frame.height) == (config.width, config.height)
         assert cam.paced
-        assert cam.loop
+        assert cam.params.loop

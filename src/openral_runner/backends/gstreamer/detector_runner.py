@@ -4,6 +4,10 @@ The detector is built from the manifest (:func:`~openral_perception.detectors.fa
 and runs on a branch :class:`~openral_runner.backends.gstreamer.tee_manager.TeeManager` attaches
 behind the tee's leaky queue (``videoconvert`` to BGR, an appsink keeping only the newest frame),
 so however slow it is the policy's leg never waits. Each detection is handed to ``on_detection``.
+
+This is the library door to detectors (no deployment field builds it); a deployment runs them
+through the ``perception`` observer or a GStreamer sensor's ``backend_params.perception`` (see
+:mod:`openral_perception`).
 """
 
 from __future__ import annotations

@@ -6,6 +6,8 @@ counters in range, a positive integer ``fps``, feature names that are safe folde
 the files of its counted episodes under ``data/``, ``meta/episodes/`` and ``videos/``, one
 episode row per episode agreeing with the counters, the tasks, the statistics and openral's
 outcome lines. Every problem is one line that starts with the file it is in.
+
+This module reads metadata; :mod:`openral_dataset.meta_writer` makes what a commit writes.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Pure functions from the recording's state to file contents (bytes or a table); the writer stages
 them and :mod:`openral_dataset.commit` moves them into place, ``info.json`` last. Reading them back
-(and refusing what cannot be trusted) is :mod:`openral_dataset.meta`.
+(and refusing what cannot be trusted) is :mod:`openral_dataset.meta_reader`.
 """
 
 from __future__ import annotations
