@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import importlib
 import logging
 import sys
 from collections.abc import Sequence
@@ -399,9 +398,9 @@ def calibrate(
             raise ROSConfigError(
                 f"unknown joint(s) {unknown}; joints: {', '.join(manifest.joint_names)}", field="--invert"
             )
-        # Loaded only here: the Feetech bus imports pyserial (the 'serial' extra).
-        feetech = importlib.import_module("openral_hal.feetech.calibrate")
-        feetech.calibrate(
+        from openral_hal.feetech.calibrate import calibrate as calibrate_arm  # noqa: PLC0415 - pyserial: the 'serial' extra
+
+        calibrate_arm(
             manifest,
             port,
             output,
