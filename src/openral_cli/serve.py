@@ -23,10 +23,10 @@ from typing import Any
 
 import click
 
+from openral_cli.command_lifecycle import command_span
 from openral_cli.errors import exit_codes
 from openral_cli.options import json_object
 from openral_cli.serve_limits import limit_options, serve_limits
-from openral_cli.session import command_span
 from openral_cli.signals import StopSignals
 from openral_core import RobotManifest, ROSConfigError, SimEnvironment
 from openral_core.config import validate_model

@@ -20,11 +20,11 @@ from typing import Any
 
 import click
 
+from openral_cli.command_lifecycle import command_span
 from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, console_factories
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.options import json_object
 from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
-from openral_cli.session import command_span
 from openral_cli.signals import StopSignals
 from openral_core import BenchmarkSuite, ROSRuntimeError, SimEnvironment
 
