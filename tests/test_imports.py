@@ -65,6 +65,31 @@ def test_import_loads_no_heavy_library(package: str) -> None:
     assert json.loads(proc.stdout) == [], f"importing {package} loaded {proc.stdout.strip()}"
 
 
+def _imported_by_the_command(*args: str) -> set[str]:
+    """Every module ``python -m openral_cli ARGS`` imports, as ``-X importtime`` lists them."""
+    proc = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "openral_cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("import time:")]
+    return {line.rsplit("|", 1)[-1].strip() for line in lines[1:]}  # the first line is the header
+
+
+@pytest.mark.parametrize(
+    "args",
+    [("--help",), ("sim", "run", "--help"), ("benchmark", "run", "--help"), ("serve", "--help")],
+    ids=" ".join,
+)
+def test_the_commands_help_loads_no_heavy_library(args: tuple[str, ...]) -> None:
+    imported = _imported_by_the_command(*args)
+    assert "openral_cli.main" in imported  # the listing is read: the command's own modules are in it
+    heavy = sorted(m for m in imported if any(m == h or m.startswith(f"{h}.") for h in HEAVY))
+    assert heavy == [], f"openral {' '.join(args)} loaded {heavy}"
+
+
 def test_the_check_itself_detects_a_heavy_import() -> None:
     pytest.importorskip("mujoco", reason="needs the 'twin' extra")
     code = "import sys, openral_hal.mujoco_twin; print('mujoco' in sys.modules)"

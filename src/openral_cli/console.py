@@ -118,10 +118,10 @@ def attach_console(runner: Any, **controls: Callable[[], object]) -> None:
     consoles = consoles_of(runner.observers)
     if not consoles:
         return
-    status = importlib.import_module("openral_console.status")
+    from openral_console.status import runner_status  # noqa: PLC0415 - with --console only
 
     def health() -> Any:
-        return status.runner_status(runner)
+        return runner_status(runner)
 
     for console in consoles:
         console.set_status(health)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import importlib
 import logging
 import sys
 from collections.abc import Sequence
@@ -13,6 +12,7 @@ from pathlib import Path
 import click
 import structlog
 
+from openral_cli.command_lifecycle import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, with_console
 from openral_cli.controls import run_controls
 from openral_cli.errors import EXIT_CONFIG, EXIT_OK, exit_codes
@@ -34,7 +34,6 @@ from openral_cli.recording import (
     with_thumbnails,
 )
 from openral_cli.serve import serve
-from openral_cli.session import command_span, exit_code, print_result, running, stopped_before_start
 from openral_cli.signals import StopSignals
 from openral_cli.sim import benchmark, sim
 from openral_cli.status import LiveStatus
@@ -399,9 +398,9 @@ def calibrate(
             raise ROSConfigError(
                 f"unknown joint(s) {unknown}; joints: {', '.join(manifest.joint_names)}", field="--invert"
             )
-        # Loaded only here: the Feetech bus imports pyserial (the 'serial' extra).
-        feetech = importlib.import_module("openral_hal.feetech.calibrate")
-        feetech.calibrate(
+        from openral_hal.feetech.calibrate import calibrate as calibrate_arm  # noqa: PLC0415 - pyserial: the 'serial' extra
+
+        calibrate_arm(
             manifest,
             port,
             output,

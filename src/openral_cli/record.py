@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import click
 import structlog
 
+from openral_cli.command_lifecycle import STOP_EXIT_CODES, command_span, running
 from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, with_console
 from openral_cli.controls import RunControls, run_controls, takeover_keys
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
@@ -34,7 +35,6 @@ from openral_cli.recording import (
     with_observers,
     with_thumbnails,
 )
-from openral_cli.session import STOP_EXIT_CODES, command_span, running
 from openral_cli.signals import StopSignals
 from openral_cli.status import LiveStatus
 from openral_core import RobotEnvironment, ROSRuntimeError, ROSStopRequested, StopReason

@@ -14,7 +14,6 @@ these certificate names are heard); the files are checked before the policy is l
 
 from __future__ import annotations
 
-import importlib
 import ipaddress
 import re
 import threading
@@ -24,10 +23,10 @@ from typing import Any
 
 import click
 
+from openral_cli.command_lifecycle import command_span
 from openral_cli.errors import exit_codes
 from openral_cli.options import json_object
 from openral_cli.serve_limits import limit_options, serve_limits
-from openral_cli.session import command_span
 from openral_cli.signals import StopSignals
 from openral_core import RobotManifest, ROSConfigError, SimEnvironment
 from openral_core.config import validate_model
@@ -58,7 +57,8 @@ def _robot_and_rate(
         if robot_id is not None:
             raise ROSConfigError("give --robot or --scene, not both", field="--robot")
         scene = SimEnvironment.from_yaml(scene_path)
-        make_env = importlib.import_module("openral_sim.env").make_env  # the simulators: the 'sim' extras
+        from openral_sim.env import make_env  # noqa: PLC0415 - the simulators: the 'sim' extras
+
         env = make_env(scene)
         try:
             spec = env.spec
@@ -85,7 +85,8 @@ def _tls(ca: Path | None, cert: Path | None, key: Path | None, *, mutual: bool) 
             f"TLS needs {', '.join(missing)} too", field=missing[0], hint="give --tls-ca, --tls-cert and --tls-key"
         )
     tls = TlsConfig(ca=str(ca), cert=str(cert), key=str(key), mutual=mutual)
-    check_tls = importlib.import_module("openral_remote.tls").check_tls  # cryptography: the 'remote' extra
+    from openral_remote.tls import check_tls  # noqa: PLC0415 - cryptography: the 'remote' extra
+
     check_tls(tls, prefix="--tls-")
     return tls
 
@@ -357,8 +358,8 @@ def serve(
             },
             source="openral serve's options",
         )
-        # Loaded only here: the Zenoh server imports eclipse-zenoh (the 'remote' extra).
-        server_module = importlib.import_module("openral_remote.server")
+        from openral_remote.server import PolicyServer  # noqa: PLC0415 - eclipse-zenoh: the 'remote' extra
+
         keep_message_memory()  # this process moves camera-sized messages: glibc keeps their memory for reuse
         robot, rate = _robot_and_rate(robot_id, scene_path, rate_hz)
         keys = PolicyKeys.of(robot.robot_id, name or skill_id)
@@ -386,7 +387,7 @@ def serve(
             )
             stopped = threading.Event()
             signals.on_stop(lambda _reason: stopped.set())
-            server: Any = server_module.PolicyServer(
+            server = PolicyServer(
                 skill,
                 keys=keys,
                 zenoh=zenoh,

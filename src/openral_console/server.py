@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import importlib
 import json
 import socket
 import threading
@@ -56,7 +55,7 @@ def check_installed() -> None:
         ROSDependencyMissing: aiohttp cannot be imported (the ``console`` extra).
     """
     try:
-        importlib.import_module("aiohttp")
+        import aiohttp  # noqa: F401, PLC0415 - the check itself: the 'console' extra
     except ImportError as exc:
         raise _missing() from exc
 

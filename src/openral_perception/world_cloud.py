@@ -10,7 +10,6 @@ attributes of an ``openral.world_cloud`` span; it needs rclpy (a ROS 2 installat
 from __future__ import annotations
 
 import base64
-import importlib
 import io
 import math
 import time
@@ -164,14 +163,16 @@ class WorldCloudBridge:
         from openral_core import ROSDependencyMissing  # noqa: PLC0415
 
         try:
-            qos = importlib.import_module("rclpy.qos")
-            tf2_ros = importlib.import_module("tf2_ros")
-            self._cloud_msg = importlib.import_module("sensor_msgs.msg").PointCloud2
-            self._point_cloud2 = importlib.import_module("sensor_msgs_py.point_cloud2")
+            import tf2_ros  # noqa: PLC0415 - ROS 2: a sourced installation, no extra
+            from rclpy import qos  # noqa: PLC0415
+            from sensor_msgs.msg import PointCloud2  # noqa: PLC0415
+            from sensor_msgs_py import point_cloud2  # noqa: PLC0415
         except ImportError as exc:
             raise ROSDependencyMissing(
                 "rclpy", extra=None, needed_for="the world-cloud bridge", install="source a ROS 2 installation"
             ) from exc
+        self._cloud_msg = PointCloud2
+        self._point_cloud2 = point_cloud2
         self.node = node
         self.target_frame = target_frame
         self.period_s = period_s

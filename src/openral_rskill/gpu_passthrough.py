@@ -11,7 +11,6 @@ frame reduced three times), so the first tick does not pay for the CUDA context 
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Mapping
 from typing import Any, Literal, Self
 
@@ -74,7 +73,7 @@ class GpuPassthroughSkill(RSkillBase):
         if self.device == "cpu":
             return
         try:
-            torch = importlib.import_module("torch")
+            import torch  # noqa: PLC0415 - PyTorch with CUDA, installed for the driver by hand
         except ImportError as exc:
             raise ROSDependencyMissing(
                 "torch",

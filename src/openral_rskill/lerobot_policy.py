@@ -21,7 +21,6 @@ its first ``rows`` rows used (the checkpoint's ``n_action_steps`` unless overrid
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal, Self
 
@@ -142,8 +141,9 @@ class LeRobotPolicySkill(ChunkingSkillBase):
 
     def _on_configure(self) -> None:
         # Loaded only here: torch and lerobot (the 'lerobot' extra) take seconds to import.
-        runtime = importlib.import_module("openral_rskill.lerobot.runtime")
-        policy = runtime.LoadedPolicy(self.checkpoint, device=self.params.device, threads=self.params.threads)
+        from openral_rskill.lerobot.runtime import LoadedPolicy  # noqa: PLC0415
+
+        policy = LoadedPolicy(self.checkpoint, device=self.params.device, threads=self.params.threads)
         self._check_units(policy.state_bound())
         self._policy = policy
         blank = self.inputs.blank()

@@ -347,7 +347,7 @@ def test_calibrate_rejects_unknown_joint(tmp_path: Path) -> None:
     ],
 )
 def test_stop_reasons_map_to_exit_codes(reason: str, code: int) -> None:
-    from openral_cli.session import exit_code  # noqa: PLC0415
+    from openral_cli.command_lifecycle import exit_code  # noqa: PLC0415
     from openral_core import StopReason  # noqa: PLC0415
 
     assert exit_code(StopReason(reason)) == code

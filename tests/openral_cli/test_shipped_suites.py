@@ -7,9 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from openral_cli.sim import _check_rows, _load_rows
 from openral_core import BenchmarkSuite, ROSDependencyMissing
-from openral_sim import build
+from openral_sim.benchmark.rows import check_rows, load_rows
 
 SUITES = sorted((Path(__file__).resolve().parents[2] / "benchmarks" / "suites").glob("*.yaml"))
 
@@ -18,8 +17,8 @@ SUITES = sorted((Path(__file__).resolve().parents[2] / "benchmarks" / "suites").
 def test_a_shipped_suite_resolves_every_row(suite_file: Path) -> None:
     suite = BenchmarkSuite.from_yaml(suite_file)
     try:
-        rows = _load_rows(suite, suite_file, hashlib.sha256(), render_all=False)
-        _check_rows(rows, build, on_ray=False)
+        rows = load_rows(suite, suite_file, hashlib.sha256(), render_all=False)
+        check_rows(rows, on_ray=False)
     except ROSDependencyMissing as exc:
         pytest.skip(str(exc))
     assert len(rows) == len(suite.runs)

