@@ -101,8 +101,21 @@ class TickResult(BaseModel):
     tick_idx: int = Field(ge=0)
     start_ns: int = 0
     tick_ms: float = 0.0
-    sensors_ms: float = 0.0
-    world_state_ms: float = 0.0
+    sensors_ms: float = Field(
+        default=0.0,
+        description=(
+            "Time to read the robot's state and its sensors for this tick, before the world state is built and the "
+            "skill is asked: on a robot, each camera's latest frame and HAL.read_state; in simulation, rendering the "
+            "cameras on the last step's observation (its state came with the step)."
+        ),
+    )
+    world_state_ms: float = Field(
+        default=0.0,
+        description=(
+            "Time to build the world state the skill sees from what was read: on a robot, the aggregator's snapshot "
+            "with its verdict on every component; in simulation, assembling it from the observation and the frames."
+        ),
+    )
     inference_ms: float = 0.0
     safety_ms: float = 0.0
     hal_ms: float = 0.0
