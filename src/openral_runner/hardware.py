@@ -365,6 +365,7 @@ class HardwareRunner(SkillRunnerBase):
             _log.warning("read_state failed", error=str(exc), tick=tick.tick_idx)
         finally:
             span.end()
+        # A duration on the runner's clock is never negative: recorded as is, without ``record_ms``'s check.
         telemetry.record(semconv.METRIC_HAL_READ_STATE_DURATION, (self._clock.now() - started) * 1e3, self._hal_attrs)
 
     def _world_state(self, tick: TickContext) -> WorldState:

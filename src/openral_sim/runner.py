@@ -5,10 +5,9 @@ reset) or a *step tick*, the tick body every runner runs
 (:class:`~openral_runner.skill_runner.SkillRunnerBase`): the skill sees the last observation, its
 cameras rendered now, as a ``WorldState``; its action is checked by the safety client and sent to
 ``env.step``, exactly as on hardware (a withheld action steps the env with the hold action, as a
-robot keeps holding). Step ticks carry ``episode_idx``,
-``step_idx``, ``reward``, ``terminated`` and ``truncated``; the episodes' outcomes
-(:attr:`SimRunner.episode_results`) are derived from them, and ``run()`` ends once
-``n_episodes`` are done.
+robot keeps holding). Step ticks carry ``episode_idx``, ``step_idx``, ``reward``, ``terminated``
+and ``truncated``; the episodes' outcomes (:attr:`SimRunner.episode_results`) are derived from
+them, and ``run()`` ends once ``n_episodes`` are done.
 
 A skill that keeps failing stops the run at the fault limit, as on a robot: the episode under way
 ends as ``faults`` (never as a cut-off at ``max_steps``) and is not kept by a recorder, and
