@@ -138,8 +138,21 @@ class TickResult(BaseModel):
     tick_idx: Annotated[int, SpanAttribute("openral.tick.idx"), DatasetColumn("int64")] = Field(ge=0)
     start_ns: Annotated[int, DatasetColumn("int64", name="openral.tick_start_ns")] = 0
     tick_ms: Annotated[float, SpanAttribute("skill.tick_ms")] = 0.0
-    sensors_ms: Annotated[float, SpanAttribute("skill.sensors_ms")] = 0.0
-    world_state_ms: Annotated[float, SpanAttribute("skill.world_state_ms")] = 0.0
+    sensors_ms: Annotated[float, SpanAttribute("skill.sensors_ms")] = Field(
+        default=0.0,
+        description=(
+            "Time to read the robot's state and its sensors for this tick, before the world state is built and the "
+            "skill is asked: on a robot, each camera's latest frame and HAL.read_state; in simulation, rendering the "
+            "cameras on the last step's observation (its state came with the step)."
+        ),
+    )
+    world_state_ms: Annotated[float, SpanAttribute("skill.world_state_ms")] = Field(
+        default=0.0,
+        description=(
+            "Time to build the world state the skill sees from what was read: on a robot, the aggregator's snapshot "
+            "with its verdict on every component; in simulation, assembling it from the observation and the frames."
+        ),
+    )
     inference_ms: Annotated[float, SpanAttribute("skill.inference_ms")] = 0.0
     safety_ms: Annotated[float, SpanAttribute("skill.safety_ms")] = 0.0
     hal_ms: Annotated[float, SpanAttribute("skill.hal_ms")] = 0.0

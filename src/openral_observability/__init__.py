@@ -2,6 +2,15 @@
 
 from openral_observability import metrics, propagation, semconv
 from openral_observability.propagation import current_traceparent
-from openral_observability.tracing import trace_id_hex, traceparent, tracer
+from openral_observability.tracing import record_error, trace_id_hex, traceparent, tracer
 
-__all__ = ["current_traceparent", "metrics", "propagation", "semconv", "trace_id_hex", "traceparent", "tracer"]
+__all__ = [
+    "current_traceparent",
+    "metrics",
+    "propagation",
+    "record_error",
+    "semconv",
+    "trace_id_hex",
+    "traceparent",
+    "tracer",
+]

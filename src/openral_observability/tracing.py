@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from opentelemetry import trace
-from opentelemetry.trace import Span, Tracer
+from opentelemetry.trace import Span, Status, StatusCode, Tracer
 
 from openral_observability.semconv import TRACER_NAME
 
@@ -29,3 +29,9 @@ def trace_id_hex(span: Span) -> str | None:
     """The 32-hex trace id of ``span``, or ``None`` when tracing is off."""
     ctx = span.get_span_context()
     return f"{ctx.trace_id:032x}" if ctx.is_valid else None
+
+
+def record_error(span: Span, exc: BaseException) -> None:
+    """Mark ``span`` failed with ``exc``: the exception as an event, and an error status carrying its message."""
+    span.record_exception(exc)
+    span.set_status(Status(StatusCode.ERROR, str(exc)))

@@ -1,13 +1,14 @@
 """``InferenceRunnerBase``: cadence, deadline policy, the tick span, and honest run statistics.
 
-Subclasses implement ``_tick_impl``, which writes its phases into the tick's ``TickContext``; the base
-owns everything around one tick and builds its ``TickResult`` once:
+Subclasses implement ``_tick_impl``, which writes its phases into the tick's ``TickContext`` (every
+runner around a skill runs the one in :mod:`openral_runner.skill_runner`); the base owns everything
+around one tick and builds its ``TickResult`` once:
 
 * **Absolute schedule.** Slot ``k`` starts at ``t0 + k / rate_hz``. After an overrun the next
   tick starts at the next future slot boundary; skipped slots are counted, phase is kept, and
   there is never a catch-up burst.
-* **Deadline policy before actuation.** A subclass calls ``_deadline_allows_send()`` after
-  safety and before ``HAL.send_action``: ``warn`` sends and counts, ``drop`` withholds the late
+* **Deadline policy before actuation.** The tick calls ``_deadline_allows_send()`` after
+  safety and before it acts: ``warn`` sends and counts, ``drop`` withholds the late
   action, ``raise`` withholds it, stops the loop and raises ``ROSDeadlineMissed`` carrying
   the partial ``RunResult``.
 * **Faults as policy.** Ticks withheld for a fault (stale required sensor, failed state read,
@@ -21,7 +22,6 @@ import math
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, Final
 
 import structlog
@@ -38,7 +38,6 @@ from openral_core import (
     RunResult,
     StopReason,
     TickResult,
-    WithheldReason,
     WorldState,
 )
 from openral_observability import metrics, semconv, trace_id_hex, traceparent
@@ -53,9 +52,6 @@ from openral_runner.tick_span import tick_span_attributes
 
 _log = structlog.get_logger(__name__)
 
-FAULT_REASONS: Final = frozenset(reason for reason in WithheldReason if reason.is_fault)
-"""Withheld reasons that count towards ``max_consecutive_failures``."""
-
 _RECENT_TICKS: Final = 4096
 _PER_RUN_STOPS: Final = frozenset({StopReason.STOP_REQUESTED, StopReason.SKILL_DONE})
 """Stop reasons that end one ``run()`` only; signals, faults and e-stops stay until ``deactivate()``."""
@@ -69,7 +65,6 @@ class InferenceRunnerBase(ABC):
         deadline_overrun_policy: What to do with an action ready after its slot ends.
         runner_name: Name reported in results and logs.
         latency_budget_ms: Optional per-tick budget; ticks longer than it are counted.
-        save_dir: Where a subclass may write artefacts.
         clock: Scheduling clock; a fake clock makes tests deterministic.
         skill_id: Reported in results and as the ``skill.id`` metric label.
         max_consecutive_failures: Faulted ticks in a row that end the run safely.
@@ -87,7 +82,6 @@ class InferenceRunnerBase(ABC):
         deadline_overrun_policy: DeadlineOverrunPolicy = DeadlineOverrunPolicy.WARN,
         runner_name: str = "inference_runner",
         latency_budget_ms: float | None = None,
-        save_dir: Path | None = None,
         clock: Clock | None = None,
         skill_id: str | None = None,
         max_consecutive_failures: int = 5,
@@ -103,7 +97,6 @@ class InferenceRunnerBase(ABC):
         self.deadline_overrun_policy = DeadlineOverrunPolicy(deadline_overrun_policy)
         self.runner_name = runner_name
         self.latency_budget_ms = latency_budget_ms
-        self.save_dir = save_dir
         self.skill_id = skill_id
         self.max_consecutive_failures = max_consecutive_failures
         self.garbage_collection = GarbageCollection(garbage_collection)
@@ -119,8 +112,8 @@ class InferenceRunnerBase(ABC):
         self._metric_attrs = {semconv.ATTR_SKILL_ID: skill_id or runner_name}
         # Each tick's spans and metric samples are recorded as data and exported by a worker
         # thread under an SDK provider (``openral_observability.deferred``); with the API's no-op
-        # providers they are the API's near-free no-ops.
-        self._recorder = TickRecorder()
+        # providers they are the API's near-free no-ops. (Telemetry only: a dataset recorder is an observer.)
+        self._telemetry_recorder = TickRecorder()
         self._telemetry = TickTelemetry(trace.INVALID_SPAN, defer_metrics=False)
         self._last_late_log_s = float("-inf")
         self._late_since_log = 0
@@ -152,14 +145,14 @@ class InferenceRunnerBase(ABC):
                 for viewer in self.observers:
                     if isinstance(viewer, ThumbnailSubscriber):
                         source.subscribe(viewer.on_thumbnail)  # one JPEG encode for every viewer
-        self._recorder.activate()
+        self._telemetry_recorder.activate()
         self._active = True
 
     def deactivate(self) -> None:
         """Stop ticking and flush the telemetry worker; a pending stop request is cleared. Idempotent."""
         self._active = False
         self._stop_reason = None
-        self._recorder.deactivate()
+        self._telemetry_recorder.deactivate()
 
     def flush_telemetry(self, timeout_s: float = 10.0) -> bool:
         """Wait until the spans and metric samples of every tick so far are handed to the SDK.
@@ -167,12 +160,12 @@ class InferenceRunnerBase(ABC):
         Returns:
             ``False`` if the worker did not catch up within ``timeout_s``.
         """
-        return self._recorder.worker.flush(timeout_s)
+        return self._telemetry_recorder.worker.flush(timeout_s)
 
     @property
     def telemetry_dropped(self) -> int:
         """Ticks whose deferred telemetry was dropped because the worker fell behind."""
-        return self._recorder.worker.dropped
+        return self._telemetry_recorder.worker.dropped
 
     def request_stop(self, reason: StopReason | str = StopReason.STOP_REQUESTED) -> None:
         """Ask ``run()`` to finish the current tick and return. Safe from signal handlers and threads.
@@ -220,8 +213,8 @@ class InferenceRunnerBase(ABC):
         """Open an explicit episode boundary; runners that support episodes override this."""
         raise NotImplementedError(f"{type(self).__name__} has no explicit episodes")
 
-    def episode_end(self, *, success: bool) -> None:
-        """Close the episode opened by ``episode_start``."""
+    def episode_end(self, *, success: bool, keep: bool = True) -> None:
+        """Close the episode opened by ``episode_start``; ``keep=False`` throws it away (a recorder discards it)."""
         raise NotImplementedError(f"{type(self).__name__} has no explicit episodes")
 
     # -- one tick ------------------------------------------------------------------------
@@ -251,8 +244,8 @@ class InferenceRunnerBase(ABC):
         starts when the slot does (``tick.start_s`` is set then); without it, it starts at
         ``tick.start_s``.
         """
-        recorder = self._recorder
-        telemetry = recorder.begin() if slot_start_s is not None and recorder.begins_ahead else None
+        telemetry_recorder = self._telemetry_recorder
+        telemetry = telemetry_recorder.begin() if slot_start_s is not None and telemetry_recorder.begins_ahead else None
         self._tick = tick
         self._raise_pending = False
         if slot_start_s is not None:
@@ -260,10 +253,10 @@ class InferenceRunnerBase(ABC):
             tick.start_s = self._clock.now()
         # From here to the action, only the tick: its bookkeeping waits until it is over.
         if telemetry is None:
-            telemetry = recorder.begin()
+            telemetry = telemetry_recorder.begin()
         else:
             telemetry.restart()
-        worker = recorder.worker
+        worker = telemetry_recorder.worker
         worker.busy = True
         idx = tick.tick_idx
         start_s = tick.start_s
@@ -295,7 +288,7 @@ class InferenceRunnerBase(ABC):
         finally:
             if token is not None:
                 context.detach(token)
-            recorder.end(telemetry, tick_attributes)
+            telemetry_recorder.end(telemetry, tick_attributes)
             worker.busy = False
         return result
 
@@ -354,43 +347,29 @@ class InferenceRunnerBase(ABC):
             self._late_since_log = 0
 
     def _account(self, result: TickResult, span: Span) -> dict[str, Any] | None:
-        """Count the tick; returns the tick span's attributes when it is recorded."""
-        phases_ms = result.sensors_ms + result.world_state_ms + result.inference_ms + result.safety_ms + result.hal_ms
-        self._stats.tick_ms.add(result.tick_ms)
-        self._stats.inference_ms.add(result.inference_ms)
-        self._stats.overhead_us.add(max(0.0, result.tick_ms - phases_ms) * 1e3)
+        """Count the tick and report it as metrics; returns the tick span's attributes when it is recorded."""
+        stats = self._stats
+        over_budget = self.latency_budget_ms is not None and result.tick_ms > self.latency_budget_ms
+        stats.count(result, over_budget=over_budget)
         reason = result.withheld_reason
         if reason is not None:
-            self._stats.withheld += 1
             metrics.add(
                 semconv.METRIC_ACTIONS_WITHHELD, 1, {**self._metric_attrs, semconv.ATTR_WITHHELD_REASON: reason}
             )
-            if reason == WithheldReason.DEADLINE:
-                self._stats.dropped += 1
-            if reason in FAULT_REASONS:
-                self._stats.failed += 1
-                self._stats.consecutive_failures += 1
-                if self._stats.consecutive_failures >= self.max_consecutive_failures:
-                    _log.error(
-                        "stopping: too many consecutive failed ticks",
-                        failures=self._stats.consecutive_failures,
-                        last_reason=reason,
-                    )
-                    self.request_stop(StopReason.FAULTS)
-            else:
-                self._stats.consecutive_failures = 0
-        else:
-            self._stats.consecutive_failures = 0
-        self._stats.stale_reads += len(result.stale_sensors)
-        self._stats.safety_violations += len(result.safety_violations)
-        if self.latency_budget_ms is not None and result.tick_ms > self.latency_budget_ms:
-            self._stats.budget_violations += 1
+            if stats.consecutive_failures >= self.max_consecutive_failures:
+                _log.error(
+                    "stopping: too many consecutive failed ticks",
+                    failures=stats.consecutive_failures,
+                    last_reason=reason,
+                )
+                self.request_stop(StopReason.FAULTS)
+        if over_budget:
             metrics.add(semconv.METRIC_BUDGET_VIOLATIONS, 1, self._metric_attrs)
         telemetry = self._telemetry
         telemetry.record_ms(semconv.METRIC_TICK_DURATION, result.tick_ms, self._metric_attrs)
         telemetry.record_ms(semconv.METRIC_INFERENCE_DURATION, result.inference_ms, self._metric_attrs)
-        if self._stats.trace_id is None and span.get_span_context().is_valid:
-            self._stats.trace_id = trace_id_hex(span)
+        if stats.trace_id is None and span.get_span_context().is_valid:
+            stats.trace_id = trace_id_hex(span)
         self.recent_ticks.append(result)
         if span.is_recording():
             return tick_span_attributes(result, self._metric_attrs)
@@ -418,7 +397,7 @@ class InferenceRunnerBase(ABC):
             if collector is not None:
                 collector.stop()
                 self.metadata["gc"] = collector.report
-        self._recorder.worker.flush()
+        self._telemetry_recorder.worker.flush()
         return self._build_run_result(n, stop_reason)
 
     def _loop(
@@ -453,7 +432,7 @@ class InferenceRunnerBase(ABC):
                 self._stats.run_t_end = clock.now()
                 self._count_start(tick.start_s, slot_start, first=n == 1)
                 exc.run_result = self._build_run_result(n, StopReason.DEADLINE)
-                self._recorder.worker.flush()
+                self._telemetry_recorder.worker.flush()
                 raise
             n += 1
             end = clock.now()

@@ -1,10 +1,13 @@
-"""``HardwareRunner``: sensors → world state → skill → safety → HAL, once per tick.
+"""``HardwareRunner``: sensors → world state → skill → safety → HAL, once per tick, on a robot.
 
-The runner is the safety-supervisor boundary: it is the only place that catches
-``ROSSafetyViolation`` (withhold), ``ROSEStopRequested`` (e-stop and stop), stale required
-sensors, failed state reads and skill exceptions. Every one of them withholds the tick's
-action, so the robot is never driven by an action computed from bad inputs; the HAL keeps
-holding its last accepted target.
+The tick body is :class:`~openral_runner.skill_runner.SkillRunnerBase`'s; this runner says what
+sensing and acting mean on a robot: each sensor reader's latest frame and the HAL's state, the
+aggregator's snapshot, ``HAL.send_action``. It also owns what only a robot has: opening and
+closing the HAL and the readers, waiting for fresh sensors before the first tick, the e-stop.
+
+Stale required sensors and failed state reads withhold the tick's action, as the base's phases do
+for a skill's exception or a safety violation, so the robot is never driven by an action computed
+from bad inputs; the HAL keeps holding its last accepted target.
 """
 
 from __future__ import annotations
@@ -32,17 +35,18 @@ from openral_core import (
     StopReason,
     SyncConfig,
     WithheldReason,
+    WorldState,
 )
 from openral_core.environment import DEFAULT_SENSOR_READY_TIMEOUT_S
 from openral_hal.protocol import HAL
-from openral_observability import metrics, semconv, tracer
+from openral_observability import metrics, record_error, semconv, tracer
 from openral_observability.observer import StartableObserver, ThumbnailSource, TickObserver
 from openral_rskill.base import RSkillBase
 from openral_runner.realtime import apply_realtime
 from openral_runner.safety import SafetyClient, SafetyCommitListener, SafetyStateObserver
 from openral_runner.sensor_lag import ReportingReader, SensorReads
 from openral_runner.sensor_reader import SensorReader, read_synced_set, with_read_synced
-from openral_runner.skill_runner import SkillRunnerBase, record_error
+from openral_runner.skill_runner import SkillRunnerBase
 from openral_runner.thumbnails import ThumbnailPublisher
 from openral_runner.tick_context import TickContext
 from openral_world_state import WorldStateAggregator
@@ -136,7 +140,6 @@ class HardwareRunner(SkillRunnerBase):
         # last frame still reaches the skill) and this tick's failed reads, their verdicts.
         self._frames: dict[str, SensorFrame] = {}
         self._failures: dict[str, ROSError] = {}
-        # Durations measured here are never negative: recorded on the instruments directly.
 
     def activate(self) -> None:
         """Start the observers, connect the HAL, then open every reader; on any failure close what was opened.
@@ -336,116 +339,73 @@ class HardwareRunner(SkillRunnerBase):
         self.metadata["episodes"][-1].update(success=success, kept=keep, end_tick=self._tick_idx)
         self._tell_episode_end(self._episode_idx, success=success, keep=keep)
 
-    # -- the tick ------------------------------------------------------------------------
+    # -- the tick's hooks --------------------------------------------------------------------
 
-    def _tick_impl(self, tick: TickContext) -> None:
-        # Every phase span is recorded as data and exported by the telemetry worker
-        # (``openral_observability.deferred``); those user code runs under (``skill.chunk_inference``
-        # and ``safety.check``) are made current, so spans the skill or safety client opens, and
-        # the e-stop span, nest under them. A tick the sampler did not record gets no phase spans
-        # at all: its phases use the tick's own non-recording span, keeping a skill's spans in the
-        # tick's unsampled trace.
-        now = self._clock.now
-        telemetry = self._telemetry
-        start_span = telemetry.start_span
-        tick_idx = tick.tick_idx
-        withheld: WithheldReason | None = None
-        stale = tick.stale_sensors
-        violations = tick.safety_violations
-
+    def _sense(self, tick: TickContext) -> None:
+        """Each reader's latest frame (or its verdict), the synchronised set, then the HAL's state."""
         if self._episode_open:
             tick.episode_idx = self._episode_idx
-            tick.step_idx = tick_idx - self._episode_start_tick
-        t0 = now()
-        failures = self._failures
-        failures.clear()
+            tick.step_idx = tick.tick_idx - self._episode_start_tick
+        self._failures.clear()
         for reader, reads in self._free_readers:
             self._read_sensor(reader, reads)
         if self._synced_readers:
             self._read_synced_set()
-        t_read = now()
-        span = start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
+        telemetry = self._telemetry
+        started = self._clock.now()
+        span = telemetry.start_span(semconv.SPAN_HAL_READ_STATE, attributes=self._hal_attrs)
         try:
             state = self.hal.read_state()
             self.aggregator.update_joint_state(state)
             if self._observe_state is not None:
                 self._observe_state(state)
         except ROSError as exc:
-            withheld = WithheldReason.READ_STATE
+            tick.withhold(WithheldReason.READ_STATE)
             record_error(span, exc)
-            _log.warning("read_state failed", error=str(exc), tick=tick_idx)
+            _log.warning("read_state failed", error=str(exc), tick=tick.tick_idx)
         finally:
             span.end()
-        t1 = now()
-        telemetry.record(semconv.METRIC_HAL_READ_STATE_DURATION, (t1 - t_read) * 1e3, self._hal_attrs)
+        # A duration on the runner's clock is never negative: recorded as is, without ``record_ms``'s check.
+        telemetry.record(semconv.METRIC_HAL_READ_STATE_DURATION, (self._clock.now() - started) * 1e3, self._hal_attrs)
 
-        span = start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
+    def _world_state(self, tick: TickContext) -> WorldState:
+        """The aggregator's snapshot: the one verdict on every component, built from the readers' own verdicts."""
+        telemetry = self._telemetry
+        span = telemetry.start_span(semconv.SPAN_WORLD_STATE_SNAPSHOT)
         try:
-            world = self.aggregator.snapshot(self._frames, failures=failures, task=self.task, span=span)
+            world = self.aggregator.snapshot(self._frames, failures=self._failures, task=self.task, span=span)
         finally:
             span.end()
-        tick.world = world
         for name, diagnosis in world.diagnostics.items():
             if diagnosis.age_ms is not None:
                 telemetry.record_ms(semconv.METRIC_WORLD_STATE_STALENESS, diagnosis.age_ms, self._component_attrs[name])
-        # The world state's diagnostics are the one verdict on every component, built from the
-        # readers' own verdicts.
         if self.sensor_readers:
             diagnostics = world.diagnostics
-            stale.extend(r.sensor_id for r in self.sensor_readers if diagnostics[r.sensor_id].stale)
-        if withheld is None and world.stale_required:
-            withheld = WithheldReason.STALE_SENSOR
+            tick.stale_sensors.extend(r.sensor_id for r in self.sensor_readers if diagnostics[r.sensor_id].stale)
+        if world.stale_required:
+            tick.withhold(WithheldReason.STALE_SENSOR)
+        return world
 
-        t2 = now()
-        action: Action | None = None
-        if withheld is None:
-            action, withheld = self._skill_phase(world, tick_idx)
-
-        requested = action
-        if action is not None and self.takeover is not None:
-            action = self._handover(action, world)
-
-        t3 = now()
-        to_send: Action | None = None
-        if action is not None:
-            to_send, withheld = self._safety_phase(action, violations)
-
-        t4 = now()
-        applied = False
-        if to_send is not None:
-            if self._deadline_allows_send():
-                span = start_span(semconv.SPAN_HAL_SEND_ACTION, attributes=self._hal_attrs)
-                try:
-                    self.hal.send_action(to_send)
-                    applied = True
-                    self._last_sent = to_send.targets[0]
-                    if self._commit_sent is not None:
-                        self._commit_sent(to_send)
-                except ROSError as exc:
-                    withheld = WithheldReason.HAL_ERROR
-                    record_error(span, exc)
-                    _log.warning("send_action failed", error=str(exc), tick=tick_idx)
-                finally:
-                    span.end()
-                telemetry.record(semconv.METRIC_HAL_SEND_ACTION_DURATION, (now() - t4) * 1e3, self._hal_attrs)
-            else:
-                withheld = WithheldReason.DEADLINE
-                telemetry.span.add_event(
-                    semconv.EVENT_ACTION_DROPPED, {semconv.ATTR_WITHHELD_REASON: WithheldReason.DEADLINE.value}
-                )
-        t5 = now()
-
-        tick.sensors_ms = (t1 - t0) * 1e3
-        tick.world_state_ms = (t2 - t1) * 1e3
-        tick.inference_ms = (t3 - t2) * 1e3
-        tick.safety_ms = (t4 - t3) * 1e3
-        tick.hal_ms = (t5 - t4) * 1e3
-        tick.action_applied = applied
-        tick.withheld = withheld
-        if requested is not None and action is not None:
-            tick.requested_action = requested.first
-            if applied and to_send is not None:
-                tick.sent_action = to_send.first
+    def _actuate(self, tick: TickContext, action: Action | None) -> WithheldReason | None:
+        """Send ``action`` to the HAL; a withheld one sends nothing (the HAL keeps holding its last target)."""
+        if action is None:
+            return None
+        telemetry = self._telemetry
+        started = self._clock.now()
+        failed: WithheldReason | None = None
+        span = telemetry.start_span(semconv.SPAN_HAL_SEND_ACTION, attributes=self._hal_attrs)
+        try:
+            self.hal.send_action(action)
+            if self._commit_sent is not None:
+                self._commit_sent(action)
+        except ROSError as exc:
+            failed = WithheldReason.HAL_ERROR
+            record_error(span, exc)
+            _log.warning("send_action failed", error=str(exc), tick=tick.tick_idx)
+        finally:
+            span.end()
+        telemetry.record(semconv.METRIC_HAL_SEND_ACTION_DURATION, (self._clock.now() - started) * 1e3, self._hal_attrs)
+        return failed
 
     def _read_synced_set(self) -> None:
         """Read the synchronised cameras as one set; without a set within the skew, each is marked stale."""

@@ -1,12 +1,22 @@
-"""``SkillRunnerBase``: what every runner that closes a loop around a skill shares (hardware and sim).
+"""``SkillRunnerBase``: the one tick body every runner that closes a loop around a skill runs (hardware and sim).
 
-The skill phase and the safety phase of a tick, the supervisor boundary around them (a skill's
-exception, an invalid action, a safety violation, an e-stop: each withholds the action and is
-traced and counted), the recorder and the episode boundaries observers hear about.
+A tick reads the world, asks the skill, checks the action and acts, in this order, and this module
+times each phase itself::
+
+    _sense()  ──►  _world_state()  ──►  skill (or executor), handover  ──►  safety  ──►  deadline, _actuate()
+    sensors_ms     world_state_ms       inference_ms                        safety_ms    hal_ms
+
+A subclass provides only the three hooks: what reading the world and acting on it mean for a robot
+(HAL state, sensor frames, the aggregator's snapshot; ``HAL.send_action``) or a simulator (the
+env's observation and camera renders; ``env.step``). Around the phases sits the supervisor
+boundary: a skill's exception, an invalid action, a safety violation, an e-stop, a late action
+each withhold the action and are traced and counted. The runner also owns the recorder and the
+episode boundaries observers hear about.
 """
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from collections.abc import Callable
 from typing import Any
 
@@ -29,13 +39,14 @@ from openral_core import (
     WorldState,
 )
 from openral_core.actions import action_problem
-from openral_observability import metrics, semconv
+from openral_observability import metrics, record_error, semconv
 from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
 from openral_rskill.executor import ChunkedExecutor, Outcome
 from openral_runner.base import InferenceRunnerBase
 from openral_runner.safety import NullSafetyClient, SafetyClient
 from openral_runner.takeover import Takeover
+from openral_runner.tick_context import TickContext
 
 _log = structlog.get_logger(__name__)
 
@@ -136,6 +147,88 @@ class SkillRunnerBase(InferenceRunnerBase):
     def _tell_episode_end(self, episode_idx: int, *, success: bool, keep: bool = True) -> None:
         for observer in list(self.observers):
             self._tell(observer, observer.on_episode_end, episode_idx, success=success, keep=keep)
+
+    # -- the tick ----------------------------------------------------------------------------
+
+    def _tick_impl(self, tick: TickContext) -> None:
+        """Sense, build the world state, ask the skill, hand over, check, apply the deadline, act: each phase timed.
+
+        A reason to withhold the action, once given, stands (:meth:`TickContext.withhold`): a
+        tick whose world state is unusable never asks the skill, and a withheld action is never
+        sent, but ``_actuate`` still runs (with ``None``) so a simulator steps on.
+        """
+        # The phases that run user code (the skill, the safety client) make their span current,
+        # so spans the skill or safety client opens, and the e-stop span, nest under them. A tick
+        # the sampler did not record gets no phase spans at all: its phases use the tick's own
+        # non-recording span, keeping a skill's spans in the tick's unsampled trace.
+        now = self._clock.now
+        t0 = now()
+        self._sense(tick)
+        t1 = now()
+        world = self._world_state(tick)
+        tick.world = world
+        t2 = now()
+        action: Action | None = None
+        if tick.withheld is None:
+            action, withheld = self._skill_phase(world, tick.tick_idx)
+            if withheld is not None:
+                tick.withhold(withheld)
+        requested = action
+        if action is not None and self.takeover is not None:
+            action = self._handover(action, world)
+        t3 = now()
+        to_send: Action | None = None
+        if action is not None:
+            to_send, withheld = self._safety_phase(action, tick.safety_violations)
+            if withheld is not None:
+                tick.withhold(withheld)
+        t4 = now()
+        if to_send is not None and not self._deadline_allows_send():
+            to_send = None
+            tick.withhold(WithheldReason.DEADLINE)
+            self._telemetry.span.add_event(
+                semconv.EVENT_ACTION_DROPPED, {semconv.ATTR_WITHHELD_REASON: WithheldReason.DEADLINE.value}
+            )
+        failed = self._actuate(tick, to_send)
+        t5 = now()
+
+        tick.sensors_ms = (t1 - t0) * 1e3
+        tick.world_state_ms = (t2 - t1) * 1e3
+        tick.inference_ms = (t3 - t2) * 1e3
+        tick.safety_ms = (t4 - t3) * 1e3
+        tick.hal_ms = (t5 - t4) * 1e3
+        if failed is not None:
+            tick.withhold(failed)
+        elif to_send is not None:
+            tick.action_applied = True
+            self._last_sent = to_send.targets[0]
+        if requested is not None and action is not None:
+            tick.requested_action = requested.first
+            if tick.action_applied and to_send is not None:
+                tick.sent_action = to_send.first
+
+    @abstractmethod
+    def _sense(self, tick: TickContext) -> None:
+        """Read the robot's state and its sensors for ``tick`` (timed as ``sensors_ms``).
+
+        Also labels ``tick`` with its episode and step when one is under way. A read that fails
+        withholds the tick's action (``tick.withhold``); the world state is still built.
+        """
+
+    @abstractmethod
+    def _world_state(self, tick: TickContext) -> WorldState:
+        """The world state the skill sees this tick, built from what ``_sense`` read (timed as ``world_state_ms``).
+
+        A world state the skill must not act on (a required sensor stale) withholds the action.
+        """
+
+    @abstractmethod
+    def _actuate(self, tick: TickContext, action: Action | None) -> WithheldReason | None:
+        """Act on ``action`` (timed, with the deadline check, as ``hal_ms``); ``None`` when it was withheld.
+
+        Returns:
+            Why ``action`` did not reach the robot after all (``HAL_ERROR``), else ``None``.
+        """
 
     # -- the skill and safety phases -------------------------------------------------------
 
@@ -347,9 +440,3 @@ class SkillRunnerBase(InferenceRunnerBase):
 
     def _estop_robot(self) -> None:
         """Bring the robot to a safe stop now (a simulation has nothing to stop)."""
-
-
-def record_error(span: Any, exc: BaseException) -> None:
-    """Mark ``span`` failed with ``exc``."""
-    span.record_exception(exc)
-    span.set_status(Status(StatusCode.ERROR, str(exc)))

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
-from openral_core import RunResult, StopReason, TickResult
+from openral_core import RunResult, StopReason, TickResult, WithheldReason
+
+FAULT_REASONS: Final = frozenset(reason for reason in WithheldReason if reason.is_fault)
+"""Withheld reasons that count towards ``max_consecutive_failures``."""
 
 DEFAULT_CAPACITY = 262_144
 """Samples kept for percentiles (~2.4 h at 30 Hz, ~4 min at 1 kHz); mean and max cover every sample."""
@@ -99,6 +102,30 @@ class RunStats:
         self.last_start_s = 0.0
         for samples in (self.tick_ms, self.inference_ms, self.jitter_us, self.overhead_us):
             samples.clear()
+
+    def count(self, result: TickResult, *, over_budget: bool) -> None:
+        """Add one tick: its timings, why its action was withheld, its stale reads and safety violations.
+
+        A withheld fault adds to ``consecutive_failures``; any other tick ends the streak.
+        """
+        phases_ms = result.sensors_ms + result.world_state_ms + result.inference_ms + result.safety_ms + result.hal_ms
+        self.tick_ms.add(result.tick_ms)
+        self.inference_ms.add(result.inference_ms)
+        self.overhead_us.add(max(0.0, result.tick_ms - phases_ms) * 1e3)
+        reason = result.withheld_reason
+        if reason is not None:
+            self.withheld += 1
+            if reason == WithheldReason.DEADLINE:
+                self.dropped += 1
+        if reason in FAULT_REASONS:
+            self.failed += 1
+            self.consecutive_failures += 1
+        else:
+            self.consecutive_failures = 0
+        self.stale_reads += len(result.stale_sensors)
+        self.safety_violations += len(result.safety_violations)
+        if over_budget:
+            self.budget_violations += 1
 
     def effective_rate(self, n_ticks: int) -> float:
         """Achieved rate: intervals between the first and the last tick start, per second."""

@@ -1,12 +1,13 @@
 """``SimRunner``: the runner's loop around a simulator, one ``env.step`` per tick.
 
 A tick is a *reset tick* between episodes (``env.reset`` with the episode's seed, then the skill's
-reset) or a *step tick*: the skill sees the last observation as a ``WorldState``, its action is
-checked by the safety client and sent to ``env.step``, exactly as on hardware (a withheld action
-steps the env with the hold action, as a robot keeps holding). Step ticks carry ``episode_idx``,
-``step_idx``, ``reward``, ``terminated`` and ``truncated``; the episodes' outcomes
-(:attr:`SimRunner.episode_results`) are derived from them, and ``run()`` ends once
-``n_episodes`` are done.
+reset) or a *step tick*, the tick body every runner runs
+(:class:`~openral_runner.skill_runner.SkillRunnerBase`): the skill sees the last observation, its
+cameras rendered now, as a ``WorldState``; its action is checked by the safety client and sent to
+``env.step``, exactly as on hardware (a withheld action steps the env with the hold action, as a
+robot keeps holding). Step ticks carry ``episode_idx``, ``step_idx``, ``reward``, ``terminated``
+and ``truncated``; the episodes' outcomes (:attr:`SimRunner.episode_results`) are derived from
+them, and ``run()`` ends once ``n_episodes`` are done.
 
 A skill that keeps failing stops the run at the fault limit, as on a robot: the episode under way
 ends as ``faults`` (never as a cut-off at ``max_steps``) and is not kept by a recorder, and
@@ -31,6 +32,7 @@ from openral_core import (
     JointState,
     PrivilegedState,
     ROSConfigError,
+    SensorFrame,
     SimEnvironment,
     StopReason,
     TickResult,
@@ -99,7 +101,9 @@ class SimRunner(SkillRunnerBase):
         self._spec = env.spec
         self._action_names = list(env.spec.action_names)
         self._observation: SimObservation | None = None
-        self._world: WorldState | None = None
+        """The observation of the last step (or reset): what the next step tick senses."""
+        self._stamp_ns = 0
+        self._frames: dict[str, SensorFrame] | None = None
         self._episode: _EpisodeTally | None = None
         self._frame_seq = 0
         self._opened = False
@@ -149,69 +153,78 @@ class SimRunner(SkillRunnerBase):
     # -- the tick --------------------------------------------------------------------------
 
     def _tick_impl(self, tick: TickContext) -> None:
+        """A reset tick between episodes, else the base's tick body around one ``env.step``."""
         if self._episode is None:
             self._reset_tick(tick)
             return
-        self._step_tick(tick, self._episode)
+        super()._tick_impl(tick)
 
     def _reset_tick(self, tick: TickContext) -> None:
-        """Reset the env into the next episode with its seed, and the skill with it."""
+        """Reset the env into the next episode with its seed, and the skill with it (timed as ``hal_ms``).
+
+        The reset's observation is sensed by the episode's first step tick, where the skill sees it.
+        """
         now = self._clock.now
         t0 = now()
         index = self.first_episode + len(self.episode_results)
         seed = self.scene.seed + index
-        observation = self.env.reset(seed)
+        self._observation = self.env.reset(seed)
         if self.executor is not None and self.scene.virtual_latency is not None:
             self.executor.virtual_delay = self.scene.virtual_latency.sampler(seed)
         self._reset_skill(seed)
-        t1 = now()
+        tick.hal_ms = (now() - t0) * 1e3
         self._episode = _EpisodeTally(index, seed)
-        self._observation = observation
-        self._world = self._world_state(observation)
-        tick.world = self._world
         tick.episode_idx = index
-        tick.hal_ms = (t1 - t0) * 1e3
         self._tell_episode_start(index, self.scene.task)
 
-    def _step_tick(self, tick: TickContext, episode: _EpisodeTally) -> None:
-        now = self._clock.now
-        world = self._world
-        assert world is not None  # set by the reset tick
-        tick.world = world
+    def _sense(self, tick: TickContext) -> None:
+        """Render the scene's cameras on the observation of the last step (or the reset); its state is already read."""
+        episode = self._episode
+        assert episode is not None  # a step tick runs inside an episode
         tick.episode_idx = episode.index
         tick.step_idx = episode.steps
-        t2 = now()
-        action, withheld = self._skill_phase(world, tick.tick_idx)
-        t3 = now()
-        to_send: Action | None = None
+        self._stamp_ns = stamp = self._clock.now_ns()
+        if not self.scene.cameras:
+            return
+        self._frame_seq += 1
+        self._frames = {
+            cam.name: frame_from_array(
+                cam.name,
+                self.env.render(cam.name, cam.width, cam.height),
+                stamp_ns=stamp,
+                seq=self._frame_seq,
+                encoding=FrameEncoding.RGB8,
+            )
+            for cam in self.scene.cameras
+        }
+
+    def _world_state(self, tick: TickContext) -> WorldState:
+        """The last observation's state, privileged values and camera frames, as the skill sees them."""
+        observation = self._observation
+        assert observation is not None  # set by the reset tick
+        stamp = self._stamp_ns
+        return WorldState(
+            stamp_ns=stamp,
+            joint_state=JointState(
+                names=list(self._spec.state_names), positions=observation.state.tolist(), stamp_ns=stamp
+            ),
+            image_frames=self._frames,
+            privileged=PrivilegedState(values=observation.privileged),
+            task=self.scene.task,
+        )
+
+    def _actuate(self, tick: TickContext, action: Action | None) -> WithheldReason | None:
+        """Step the env with ``action``, or with the hold action when it was withheld (as a robot keeps holding)."""
+        episode = self._episode
+        assert episode is not None
         if action is not None:
-            to_send, withheld = self._safety_phase(action, tick.safety_violations)
-        t4 = now()
-        if to_send is not None and not self._deadline_allows_send():
-            to_send = None
-            withheld = WithheldReason.DEADLINE
-        if to_send is not None:
-            command = np.asarray(to_send.first, dtype=np.float64)
+            command = np.asarray(action.first, dtype=np.float64)
             episode.last_sent = command
         else:
             command = self._spec.hold_action(episode.last_sent)
         step = self.env.step(command)
-        t5 = now()
         observation = step.observation
         self._observation = observation
-        self._world = self._world_state(observation)
-        t6 = now()
-
-        tick.inference_ms = (t3 - t2) * 1e3
-        tick.safety_ms = (t4 - t3) * 1e3
-        tick.hal_ms = (t5 - t4) * 1e3
-        tick.sensors_ms = (t6 - t5) * 1e3
-        tick.action_applied = to_send is not None
-        tick.withheld = withheld
-        if action is not None:
-            tick.requested_action = action.first
-            if to_send is not None:
-                tick.sent_action = to_send.first
         tick.reward = step.reward
         tick.terminated = step.terminated
         tick.truncated = step.truncated
@@ -219,18 +232,17 @@ class SimRunner(SkillRunnerBase):
         episode.steps += 1
         episode.sum_reward += step.reward
         episode.max_reward = max(episode.max_reward, step.reward)
-        episode.inference_ms += tick.inference_ms
         success = self._success(observation, episode)
         if success and episode.steps_to_success is None:
             episode.steps_to_success = episode.steps
-        ended_by = _ended_by(
+        episode.pending_end = _ended_by(  # closed once the tick's result has reached the observers
             success=success and self.scene.end_on_success,
             terminated=step.terminated,
             truncated=step.truncated,
             max_steps=episode.steps >= self.scene.max_steps,
             skill_done=episode.skill_done,
         )
-        episode.pending_end = ended_by  # closed once the tick's result has reached the observers
+        return None
 
     def _run_tick(self, tick: TickContext, *, slot_start_s: float | None = None) -> TickResult:
         """Run the tick; an episode it ended is closed after the observers have seen its last step."""
@@ -240,6 +252,7 @@ class SimRunner(SkillRunnerBase):
             self._failure = self._describe_failure(result)
         episode = self._episode
         if episode is not None and result.step_idx is not None:
+            episode.inference_ms += result.inference_ms
             episode.step_ms_total += result.tick_ms
             episode.step_ms_max = max(episode.step_ms_max, result.tick_ms)
             if self.latency_budget_ms is not None and result.tick_ms > self.latency_budget_ms:
@@ -326,31 +339,6 @@ class SimRunner(SkillRunnerBase):
                 field="success_key",
                 hint="set success_key to the key the environment reports success under",
             )
-
-    def _world_state(self, observation: SimObservation) -> WorldState:
-        stamp = self._clock.now_ns()
-        frames = None
-        if self.scene.cameras:
-            self._frame_seq += 1
-            frames = {
-                cam.name: frame_from_array(
-                    cam.name,
-                    self.env.render(cam.name, cam.width, cam.height),
-                    stamp_ns=stamp,
-                    seq=self._frame_seq,
-                    encoding=FrameEncoding.RGB8,
-                )
-                for cam in self.scene.cameras
-            }
-        return WorldState(
-            stamp_ns=stamp,
-            joint_state=JointState(
-                names=list(self._spec.state_names), positions=observation.state.tolist(), stamp_ns=stamp
-            ),
-            image_frames=frames,
-            privileged=PrivilegedState(values=observation.privileged),
-            task=self.scene.task,
-        )
 
 
 class _EpisodeTally:

@@ -159,7 +159,7 @@ runner = HardwareRunner(hal=RecordingHAL(["j0"]), skill=skill, aggregator=WorldS
 runner.activate()
 result = runner.run(50)
 runner.deactivate()
-print(type(runner._recorder.begin()).__name__, result.n_ticks, result.withheld_actions)
+print(type(runner._telemetry_recorder.begin()).__name__, result.n_ticks, result.withheld_actions)
 """
 
 

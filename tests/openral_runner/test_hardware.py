@@ -128,6 +128,26 @@ def test_tick_runs_five_phases_and_sends_the_action() -> None:
     assert hal.calls[:3] == ["connect", "read_state", "send_action"]
 
 
+def test_each_phase_is_timed_where_it_runs() -> None:
+    clock = FakeClock()
+
+    class SlowReadHAL(RecordingHAL):
+        def read_state(self) -> JointState:
+            clock.advance(0.001)
+            return super().read_state()
+
+    hal = SlowReadHAL(JOINTS, clock_ns=clock.now_ns, on_send=lambda _a: clock.advance(0.002))
+    skill = ScriptedSkill(JOINTS, actions=rows(0.1), on_step=lambda _i: clock.advance(0.005))
+    runner, _, _ = build(clock, skill=skill, hal=hal)
+    runner.activate()
+    runner.run(1)
+    tick = runner.recent_ticks[0]
+    # Reading the robot's state is sensing, before the skill is asked; sending the action is the HAL's phase.
+    assert (tick.sensors_ms, tick.inference_ms, tick.hal_ms) == pytest.approx((1.0, 5.0, 2.0))
+    assert (tick.world_state_ms, tick.safety_ms) == pytest.approx((0.0, 0.0))
+    assert tick.tick_ms == pytest.approx(8.0)
+
+
 def test_frames_reach_the_skill_without_copy() -> None:
     clock = FakeClock()
     cams = [ScriptedReader("front", clock, width=8, height=6), ScriptedReader("wrist", clock, width=4, height=2)]

@@ -22,7 +22,9 @@ from openral_core import (
 )
 from openral_observability.observer import TickObserver
 from openral_rskill.testing import ScriptedSkill
+from openral_runner.testing import FakeClock
 from openral_sim.build import SkillFailed, build_sim_runner, run_episodes
+from openral_sim.env import SimObservation, SimStep
 from openral_sim.envs.mock import MockParams, MockReachEnv
 from openral_sim.runner import SimRunner
 
@@ -147,8 +149,11 @@ def test_actions_outside_the_action_space_are_clamped_and_non_finite_ones_withhe
     assert steps[2].sent_action == [0.5, 0.5]
     assert result.safety_violations == 1
     # The withheld tick stepped the env with the hold action: the point did not move.
-    positions = [w.joint_state.positions for w in log.worlds if w is not None and w.joint_state is not None]
-    assert positions[2] == positions[3]
+    seen = [w for t, w in zip(log.ticks, log.worlds, strict=True) if t.step_idx is not None]
+    positions = [w.joint_state.positions for w in seen if w is not None and w.joint_state is not None]
+    assert len(positions) == 3
+    assert positions[0] != positions[1]  # the clamped action moved it
+    assert positions[1] == positions[2]
 
 
 def test_a_failing_skill_is_withheld_and_counted_and_the_run_stops_after_too_many() -> None:
@@ -217,6 +222,46 @@ def test_cameras_are_rendered_into_the_world_state_each_step() -> None:
     # A new frame every step: the one rendered after the previous step (the reset's for step 0).
     assert [f.seq for f in frames] == list(range(1, 41))
     assert np.asarray(frames[0].as_array()).std() > 0
+
+
+class TimedEnv(MockReachEnv):
+    """The mock task, its reset, step and camera render each taking scripted fake time."""
+
+    def __init__(self, clock: FakeClock) -> None:
+        super().__init__(MockParams())
+        self.clock = clock
+
+    def reset(self, seed: int) -> SimObservation:
+        self.clock.advance(0.011)
+        return super().reset(seed)
+
+    def step(self, action: np.ndarray) -> SimStep:
+        self.clock.advance(0.007)
+        return super().step(action)
+
+    def render(self, camera: str, width: int, height: int) -> np.ndarray:
+        self.clock.advance(0.003)
+        return super().render(camera, width, height)
+
+
+def test_a_step_tick_times_its_phases_as_a_robot_tick_does() -> None:
+    clock = FakeClock()
+    skill = ScriptedSkill(["dx", "dy"], actions=[[0.1, 0.0]] * 3, on_step=lambda _i: clock.advance(0.005))
+    scene = _scene(n_episodes=1, max_steps=3, cameras=[SimCamera(name="top", width=16, height=12)])
+    runner = SimRunner(env=TimedEnv(clock), scene=scene, skill=skill, clock=clock)
+    log = TickLog()
+    _run(runner, log)
+    reset, *steps = log.ticks
+    # The reset tick resets the env and the skill; the first step senses its observation.
+    assert reset.step_idx is None
+    assert reset.hal_ms == pytest.approx(11.0)
+    assert log.worlds[0] is None
+    assert len(steps) == 3
+    for tick in steps:
+        # Sensing renders the camera on the last observation, before the skill is asked; stepping is the HAL's phase.
+        assert (tick.sensors_ms, tick.inference_ms, tick.hal_ms) == pytest.approx((3.0, 5.0, 7.0))
+        assert (tick.world_state_ms, tick.safety_ms) == pytest.approx((0.0, 0.0))
+        assert tick.tick_ms == pytest.approx(15.0)
 
 
 def test_paced_runs_keep_the_scene_rate_and_free_runs_do_not_wait() -> None:
