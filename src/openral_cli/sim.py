@@ -17,17 +17,28 @@ import platform
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import click
 
-from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, console_factories
+from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, with_console
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.options import json_object
-from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
+from openral_cli.recording import (
+    FOXGLOVE_OPTION,
+    MCAP_OPTION,
+    VCODEC_OPTION,
+    dataset_entry,
+    print_foxglove,
+    recorder_of,
+    recording_summary,
+    video_entry,
+    with_observers,
+    with_viewers,
+)
 from openral_cli.session import command_span
 from openral_cli.signals import StopSignals
 from openral_core import (
@@ -102,6 +113,8 @@ def sim() -> None:
 )
 @VCODEC_OPTION
 @CONSOLE_OPTION
+@FOXGLOVE_OPTION
+@MCAP_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout, nothing else.")
 @click.option("--otlp-endpoint", default=None, help="Export telemetry to this OTLP endpoint.")
 @click.pass_context
@@ -120,10 +133,16 @@ def sim_run(
     no_cameras: bool,
     vcodec: str,
     console: ConsoleAddress | None,
+    foxglove_port: int | None,
+    rosbag: Path | None,
     as_json: bool,
     otlp_endpoint: str | None,
 ) -> None:
-    """Run a skill on a scene's episodes and report success with its 95 % interval."""
+    """Run a skill on a scene's episodes and report success with its 95 % interval.
+
+    ``--dataset-out``, ``--save-video``, ``--mcap``, ``--foxglove`` and ``--console`` add the observer
+    entries they stand for to the scene's own ``observers:``, as they do on ``deploy``.
+    """
     build = importlib.import_module("openral_sim.build")
     evaluation = importlib.import_module("openral_sim.evaluation")
     code = EXIT_OK
@@ -132,24 +151,19 @@ def sim_run(
         if no_cameras:
             scene = scene.model_copy(update={"cameras": []})
         params = json_object(skill_params, "--skill-params")
-        observers: list[Callable[[Any], Any]] = []
-        written: list[Any] = []
+        if dataset_out is not None:  # first, as on deploy: it hears each tick before the viewers
+            scene = with_observers(scene, dataset_entry(dataset_out, resume=resume, vcodec=vcodec), first=True)
         if save_video is not None:
-            make_writer = evaluation.video_writer(scene, save_video, videos, scene.name)
+            scene = with_observers(scene, video_entry(save_video, episodes=videos, prefix=scene.name))
+        scene = with_viewers(scene, rosbag=rosbag, foxglove_port=foxglove_port, config_path=config_path)
+        scene = with_console(scene, console)
+        watched: list[Any] = []
 
-            def make_video(spec: Any) -> Any:
-                written.append(make_writer(spec))
-                return written[-1]
-
-            observers.append(make_video)
-        observers.extend(console_factories(console))
-        recorders: list[Any] = []
-
-        def make_recorder(spec: Any) -> Any:
-            assert dataset_out is not None
-            recorder = build_sim_recorder(scene, spec, dataset_out, resume=resume, vcodec=vcodec)
-            recorders.append(recorder)
-            return recorder
+        def on_runner(runner: Any) -> None:
+            watched.extend(runner.observers)
+            _stop_on(runner, signals, recording=dataset_out is not None)
+            if foxglove_port is not None:
+                print_foxglove(runner.observers)  # on stderr: a --json stdout stays one document
 
         with (
             _stdout_to_stderr(as_json),
@@ -157,14 +171,8 @@ def sim_run(
                 "sim run", config_path, otlp_endpoint=otlp_endpoint, otlp_protocol=None, trace_sample_ratio=None
             ),
         ):
-            batch = build.run_episodes(
-                scene,
-                skill_id,
-                params,
-                observers=observers,
-                recorder=make_recorder if dataset_out is not None else None,
-                on_runner=lambda runner: _stop_on(runner, signals, recorders),
-            )
+            batch = build.run_episodes(scene, skill_id, params, on_runner=on_runner)
+        recorders = [recorder_of(watched)] if dataset_out is not None and watched else []
         failed = next((r.failure for r in recorders if r.failure is not None), None)
         if failed is not None:  # the episodes after the write failure were not recorded: no result to report
             for recorder in recorders:
@@ -178,8 +186,8 @@ def sim_run(
             **evaluation.summarize(batch.episodes, batch),
             "episodes": [e.model_dump(mode="json") for e in batch.episodes],
         }
-        if written:
-            report["videos"] = [str(p) for p in written[0].written]
+        if save_video is not None:
+            report["videos"] = [str(p) for p in _videos_written(watched)]
         if as_json:
             click.echo(json.dumps(report, indent=2))
         else:
@@ -191,12 +199,19 @@ def sim_run(
     raise SystemExit(code)
 
 
-def _stop_on(runner: Any, signals: StopSignals, recorders: list[Any]) -> None:
+def _stop_on(runner: Any, signals: StopSignals, *, recording: bool) -> None:
     """Stop signals, a recorder that can no longer write and the console's stop button all end the run."""
     signals.on_stop(runner.request_stop)
-    for recorder in recorders:
-        recorder.on_failure = runner.request_stop
+    if recording:
+        recorder_of(runner.observers).on_failure = runner.request_stop
     attach_console(runner, stop=runner.request_stop)  # no-op without --console
+
+
+def _videos_written(observers: list[Any]) -> list[Path]:
+    """The files the ``--save-video`` writer wrote."""
+    from openral_sim.video import EpisodeVideoWriter  # noqa: PLC0415 (PyAV: the 'dataset' extra)
+
+    return next((o.written for o in observers if isinstance(o, EpisodeVideoWriter)), [])
 
 
 def _scene(scene: SimEnvironment, n_episodes: int | None, seed: int | None) -> SimEnvironment:
@@ -348,8 +363,11 @@ def benchmark_run(
                         host = _policy_host(scene, run, evaluator=evaluator, max_batch=serve_max_batch, gpus=serve_gpus)
                         skill_id, params = host.skill_id, host.params
                     units = evaluator.schedule(scene, skill_id, params, scene.n_episodes)
-                    if video_dir is not None:
-                        units = evaluation.with_videos(units, video_dir, suite.videos)
+                    if video_dir is not None and scene.cameras and suite.videos:
+                        prefix = f"{scene.name}_{skill_id}"
+                        units = evaluation.with_observers(
+                            units, video_entry(video_dir, episodes=suite.videos, prefix=prefix, option="--videos")
+                        )
                     batch = evaluator.run(units)
                 except build.SkillFailed as exc:
                     error = exc

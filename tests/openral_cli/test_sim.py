@@ -63,6 +63,19 @@ def test_sim_run_records_a_dataset_the_checker_accepts(tmp_path: Path) -> None:
     ]
 
 
+def test_sim_run_mcap_and_foxglove_produce_what_deploys_do(tmp_path: Path, check_bag, check_foxglove_served) -> None:
+    recording = tmp_path / "run.mcap"
+    args = ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "mock_reach_expert", "--n-episodes", "2",
+            "--foxglove", "0", "--mcap", str(recording), "--json"]  # fmt: skip
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)  # the address goes to stderr: stdout stays one document
+    check_foxglove_served(result.stderr)
+    # One tick resets each episode, then one tick per step.
+    ticks = sum(e["steps"] for e in report["episodes"]) + len(report["episodes"])
+    check_bag(recording, ticks=ticks, attached=[MOCK_SCENE.name])
+
+
 @pytest.mark.parametrize(
     ("text", "field"),
     [

@@ -14,6 +14,7 @@ from structlog.testing import capture_logs
 from openral_core import (
     FrameEncoding,
     JointState,
+    ObserverContext,
     RobotEnvironment,
     ROSConfigError,
     ROSRuntimeError,
@@ -270,7 +271,7 @@ def _deployment(rate_hz: float = 30.0) -> RobotEnvironment:
 def test_from_config_builds_the_cli_recording_and_opens_nothing_until_start(tmp_path: Path) -> None:
     robot = load_robot_manifest("so101_follower")
     recorder = RolloutRecorder.from_config(
-        {"root": "out/ds", "vcodec": "h264"}, robot=robot, env=_deployment(), base_dir=tmp_path
+        {"root": "out/ds", "vcodec": "h264"}, ObserverContext.of_deployment(_deployment(), robot, tmp_path)
     )
     root = tmp_path / "out" / "ds"
     try:
@@ -291,7 +292,8 @@ def test_from_config_builds_the_cli_recording_and_opens_nothing_until_start(tmp_
 
 def test_a_recorder_never_started_touches_no_file_when_closed(tmp_path: Path) -> None:
     recorder = RolloutRecorder.from_config(
-        {"root": str(tmp_path / "ds")}, robot=load_robot_manifest("so101_follower"), env=_deployment()
+        {"root": str(tmp_path / "ds")},
+        ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower")),
     )
     recorder.close()
     assert not (tmp_path / "ds").exists()
@@ -306,7 +308,7 @@ def test_start_refuses_an_existing_dataset_naming_the_parameter(tmp_path: Path) 
     runner.episode_end(success=True)
     runner.deactivate()
     recorder = RolloutRecorder.from_config(
-        {"root": "ds"}, robot=load_robot_manifest("so101_follower"), env=_deployment(), base_dir=tmp_path
+        {"root": "ds"}, ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower"), tmp_path)
     )
     try:
         with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.root: .*already holds") as refused:
@@ -330,7 +332,7 @@ def test_start_refuses_an_existing_dataset_naming_the_parameter(tmp_path: Path) 
 def test_a_bad_parameter_names_the_field(tmp_path: Path, params: dict[str, object], rate_hz: float, named: str) -> None:
     with pytest.raises(ROSConfigError, match=named):
         RolloutRecorder.from_config(
-            params, robot=load_robot_manifest("so101_follower"), env=_deployment(rate_hz), base_dir=tmp_path
+            params, ObserverContext.of_deployment(_deployment(rate_hz), load_robot_manifest("so101_follower"), tmp_path)
         )
     assert not (tmp_path / "ds").exists()
 
