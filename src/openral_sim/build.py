@@ -396,6 +396,12 @@ def _drive(
             on_runner(runner)
         ceiling = runner.n_episodes * (runner.scene.max_steps + 1) + 1
         runner.run(max_ticks=ceiling)
+    except BaseException:
+        if not runner.is_active:  # refused while starting (a skill, a dataset folder, a port): nothing ran
+            close_observers(runner.observers)
+            if runner.close_env:
+                runner.env.close()
+        raise
     finally:
         runner.deactivate()
     batch.failure = runner.failure

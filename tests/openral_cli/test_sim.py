@@ -76,6 +76,19 @@ def test_sim_run_mcap_and_foxglove_produce_what_deploys_do(tmp_path: Path, check
     check_bag(recording, ticks=ticks, attached=[MOCK_SCENE.name])
 
 
+def test_sim_run_refuses_a_taken_dataset_folder_naming_the_flag_and_leaves_it_as_it_was(tmp_path: Path) -> None:
+    taken = tmp_path / "taken"
+    (taken / "meta").mkdir(parents=True)
+    (taken / "meta" / "notes.txt").write_text("mine")
+    args = ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "zero", "--n-episodes", "1",
+            "--dataset-out", str(taken)]  # fmt: skip
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2, result.output
+    assert "--dataset-out" in result.output
+    assert (taken / "meta" / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in taken.iterdir()) == ["meta"]
+
+
 @pytest.mark.parametrize(
     ("text", "field"),
     [
