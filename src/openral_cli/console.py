@@ -8,7 +8,6 @@ the option is given.
 
 from __future__ import annotations
 
-import importlib
 import ipaddress
 import sys
 from collections.abc import Callable, Sequence
@@ -17,8 +16,8 @@ from typing import Any
 
 import click
 
-from openral_cli.recording import with_observers, with_thumbnails
-from openral_core import ObserverConfig, RobotEnvironment
+from openral_cli.recording import WatchedT, with_observers, with_thumbnails
+from openral_core import ObserverConfig
 from openral_observability.observer import TickObserver
 
 CONSOLE_OBSERVER = "console"
@@ -82,30 +81,14 @@ def console_entry(address: ConsoleAddress) -> ObserverConfig:
     return ObserverConfig.shorthand(CONSOLE_OBSERVER, {"host": address.host, "port": address.port}, option=_OPTION)
 
 
-def with_console(env: RobotEnvironment, address: ConsoleAddress | None) -> RobotEnvironment:
-    """``env`` with the console and a ``thumbnails`` observer for its cameras; unchanged without ``--console``."""
+def with_console(env: WatchedT, address: ConsoleAddress | None) -> WatchedT:
+    """``env`` (a deployment or a scene) with the console and a ``thumbnails`` observer for its cameras.
+
+    Unchanged without ``--console``.
+    """
     if address is None:
         return env
     return with_observers(with_thumbnails(env, CONSOLE_IMAGE_HZ), console_entry(address))
-
-
-def console_factories(address: ConsoleAddress | None) -> list[Callable[[Any], TickObserver]]:
-    """``sim run``'s observer makers for ``--console``: thumbnails, then the console; none without it."""
-    if address is None:
-        return []
-    from openral_runner.thumbnails import ThumbnailPublisher  # noqa: PLC0415
-
-    observer = importlib.import_module("openral_console.observer")  # aiohttp: only with --console
-    params = {"host": address.host, "port": address.port}
-
-    def thumbnails(_spec: Any) -> TickObserver:
-        return ThumbnailPublisher(CONSOLE_IMAGE_HZ)
-
-    def console(_spec: Any) -> TickObserver:
-        made: TickObserver = observer.ConsoleObserver.from_config(params, option=_OPTION)
-        return made
-
-    return [thumbnails, console]
 
 
 def attach_console(runner: Any, **controls: Callable[[], object]) -> None:

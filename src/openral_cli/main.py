@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import sys
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,17 +20,17 @@ from openral_cli.mujoco_gl import check_mujoco_gl
 from openral_cli.options import Seconds
 from openral_cli.record import record
 from openral_cli.recording import (
+    FOXGLOVE_OPTION,
     MCAP_OPTION,
     VCODEC_OPTION,
     dataset,
     dataset_entry,
-    foxglove_entry,
+    print_foxglove,
     recorder_of,
     recording_summary,
     replay,
-    rosbag_entry,
     with_observers,
-    with_thumbnails,
+    with_viewers,
 )
 from openral_cli.serve import serve
 from openral_cli.signals import StopSignals
@@ -51,14 +50,8 @@ from openral_dataset.highlight import MAX_HIGHLIGHT_S
 from openral_hal.manifests import load_robot_manifest
 from openral_observability import semconv
 from openral_observability.logs import OTelLogBridge, add_trace_ids
-from openral_observability.observer import TickObserver
 from openral_observability.setup import PROTOCOLS
 from openral_runner.factory import check_deployment
-
-FOXGLOVE_DEFAULT_PORT = 8765
-"""Foxglove's conventional WebSocket port."""
-FOXGLOVE_IMAGE_HZ = 10.0
-"""Camera thumbnails per second for the Foxglove view when the deployment sets no ``thumbnail_hz``."""
 
 _SUCCESSFUL_STOPS = frozenset({StopReason.MAX_TICKS, StopReason.DURATION, StopReason.SKILL_DONE})
 """How a recorded run may end and still count as a successful episode."""
@@ -147,17 +140,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     default=None,
     help="Fraction of ticks traced, each tick whole (0.1: every tenth tick); default: all.",
 )
-@click.option(
-    "--foxglove",
-    "foxglove_port",
-    type=click.IntRange(0, 65535),
-    is_flag=False,
-    flag_value=FOXGLOVE_DEFAULT_PORT,
-    default=None,
-    metavar="[PORT]",
-    help=f"Serve a live Foxglove WebSocket (joint states, cameras, tick timings, safety events); "
-    f"default port {FOXGLOVE_DEFAULT_PORT}.",
-)
+@FOXGLOVE_OPTION
 @CONSOLE_OPTION
 @click.option(
     "--dataset-out",
@@ -285,10 +268,7 @@ def _deploy(
             highlight_s=recording.highlight_s,
         )
         env = with_observers(env, entry, first=True)
-    if rosbag is not None:
-        env = with_observers(with_thumbnails(env, FOXGLOVE_IMAGE_HZ), rosbag_entry(rosbag, deployment=config_path))
-    if foxglove_port is not None:
-        env = with_observers(with_thumbnails(env, FOXGLOVE_IMAGE_HZ), foxglove_entry(foxglove_port))
+    env = with_viewers(env, rosbag=rosbag, foxglove_port=foxglove_port, config_path=config_path)
     env = with_console(env, console)
     recorder = None
     try:
@@ -297,7 +277,7 @@ def _deploy(
                 recorder = recorder_of(runner.observers)
                 recorder.on_failure = runner.request_stop  # the dataset cannot be written: stop there
             if foxglove_port is not None and not quiet:
-                _print_foxglove(runner.observers)
+                print_foxglove(runner.observers)
             controls = run_controls(env, runner, recorder)
             controls.actions[KeyCommand.STOP] = runner.request_stop
             # The console's stop is an orderly stop, as Ctrl-C; its takeover and highlight buttons
@@ -322,15 +302,6 @@ def _deploy(
     if recorder is not None and recorder.failure is not None:
         raise ROSRuntimeError(str(recorder.failure))
     return result
-
-
-def _print_foxglove(observers: Sequence[TickObserver]) -> None:
-    """Where the live Foxglove view is served (bound when the runner started it)."""
-    from openral_runner.bridges.foxglove import FoxgloveSink  # noqa: PLC0415 (the 'foxglove' extra)
-
-    for sink in observers:
-        if isinstance(sink, FoxgloveSink) and sink.port is not None:
-            click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
 
 
 @cli.command()

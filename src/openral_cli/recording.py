@@ -1,4 +1,4 @@
-"""The CLI's recording glue: the observer entries its flags stand for, the sim recorder, and ``openral dataset``.
+"""The CLI's recording glue: the observer entries its flags stand for (deployments and scenes), ``openral dataset``.
 
 ``openral_dataset`` imports pyarrow and PyAV (the ``dataset`` extra); it is loaded only when a
 command asks for a recording.
@@ -6,22 +6,27 @@ command asks for a recording.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 from PIL import Image
 
 from openral_cli.errors import exit_codes
-from openral_core import ObserverConfig, RobotEnvironment, ROSConfigError, SimEnvironment
-from openral_core.environment import THUMBNAILS_OBSERVER
+from openral_core import ObserverConfig
+from openral_core.environment import THUMBNAILS_OBSERVER, Watched
 from openral_observability.observer import TickObserver
 
 if TYPE_CHECKING:
     from openral_dataset.recorder import RolloutRecorder
-    from openral_sim.env import EnvSpec
+
+WatchedT = TypeVar("WatchedT", bound=Watched)
+"""A deployment or a scene: anything with an ``observers:`` block."""
+
+FOXGLOVE_DEFAULT_PORT = 8765
+FOXGLOVE_IMAGE_HZ = 10.0
+"""Camera thumbnails per second for the Foxglove view and bags when the file sets no ``thumbnail_hz``."""
 
 MCAP_OPTION = click.option(
     "--mcap",
@@ -29,6 +34,17 @@ MCAP_OPTION = click.option(
     type=click.Path(path_type=Path, dir_okay=False),
     default=None,
     help="Also write the session as a ROS 2 bag (MCAP, profile ros2): joint states, commands, images, ticks.",
+)
+FOXGLOVE_OPTION = click.option(
+    "--foxglove",
+    "foxglove_port",
+    type=click.IntRange(0, 65535),
+    is_flag=False,
+    flag_value=FOXGLOVE_DEFAULT_PORT,
+    default=None,
+    metavar="[PORT]",
+    help=f"Serve a live Foxglove WebSocket (joint states, cameras, tick timings, safety events); "
+    f"default port {FOXGLOVE_DEFAULT_PORT}.",
 )
 VCODEC_OPTION = click.option(
     "--vcodec",
@@ -69,17 +85,28 @@ def foxglove_entry(port: int) -> ObserverConfig:
     return ObserverConfig.shorthand("foxglove", {"port": port}, option="--foxglove")
 
 
-def with_observers(env: RobotEnvironment, *entries: ObserverConfig, first: bool = False) -> RobotEnvironment:
-    """``env`` with ``entries`` added to its ``observers:`` (before the file's own with ``first``)."""
+def with_observers(env: WatchedT, *entries: ObserverConfig, first: bool = False) -> WatchedT:
+    """``env`` (a deployment or a scene) with ``entries`` added to its ``observers:`` (first: before its own)."""
     observers = [*entries, *env.observers] if first else [*env.observers, *entries]
     return env.model_copy(update={"observers": observers})
 
 
-def with_thumbnails(env: RobotEnvironment, rate_hz: float = 10.0) -> RobotEnvironment:
+def with_thumbnails(env: WatchedT, rate_hz: float = 10.0) -> WatchedT:
     """``env`` with the ``thumbnails`` observer (at ``rate_hz`` when it has none): what views and bags show."""
     if any(o.id == THUMBNAILS_OBSERVER for o in env.observers):
         return env
     return with_observers(env, ObserverConfig(id=THUMBNAILS_OBSERVER, params={"rate_hz": rate_hz}))
+
+
+def with_viewers(
+    env: WatchedT, *, rosbag: Path | None, foxglove_port: int | None, config_path: Path | None
+) -> WatchedT:
+    """``env`` with the entries ``--mcap`` (the file attached) and ``--foxglove`` stand for, and thumbnails for them."""
+    if rosbag is not None:
+        env = with_observers(with_thumbnails(env, FOXGLOVE_IMAGE_HZ), rosbag_entry(rosbag, deployment=config_path))
+    if foxglove_port is not None:
+        env = with_observers(with_thumbnails(env, FOXGLOVE_IMAGE_HZ), foxglove_entry(foxglove_port))
+    return env
 
 
 def recorder_of(observers: Sequence[TickObserver]) -> RolloutRecorder:
@@ -89,39 +116,13 @@ def recorder_of(observers: Sequence[TickObserver]) -> RolloutRecorder:
     return next(o for o in observers if isinstance(o, RolloutRecorder))
 
 
-def build_sim_recorder(
-    scene: SimEnvironment, spec: EnvSpec, dataset_out: Path, *, resume: bool, vcodec: str
-) -> RolloutRecorder:
-    """A ``RolloutRecorder`` for simulated episodes: the env's state and action names, its object state, the cameras.
+def print_foxglove(observers: Sequence[TickObserver]) -> None:
+    """Where the live Foxglove view is served (bound when the runner started it)."""
+    from openral_runner.bridges.foxglove import FoxgloveSink  # noqa: PLC0415 (the 'foxglove' extra)
 
-    Raises:
-        ROSConfigError: The env's control rate is not a whole number, or the dataset cannot be opened.
-        ROSDependencyMissing: The ``dataset`` extra is not installed.
-    """
-    # The 'dataset' extra (pyarrow, PyAV), loaded only when a command records.
-    from openral_dataset.recorder import RolloutRecorder  # noqa: PLC0415
-    from openral_dataset.schema import CameraSpec  # noqa: PLC0415
-    from openral_dataset.video import OverflowPolicy  # noqa: PLC0415
-    from openral_dataset.writer import LeRobotDatasetSink  # noqa: PLC0415
-
-    if not math.isclose(spec.control_hz, round(spec.control_hz)):
-        raise ROSConfigError(
-            f"a dataset records whole frames per second; {scene.env} steps at {spec.control_hz:g} Hz",
-            field="--dataset-out",
-        )
-    sink = LeRobotDatasetSink(
-        dataset_out,
-        fps=round(spec.control_hz),
-        robot_type=scene.robot or scene.env_id or scene.env,
-        joint_names=list(spec.state_names),
-        action_names=list(spec.action_names),
-        environment_state_names=list(spec.environment_state_names),
-        cameras=[CameraSpec(c.name, c.width, c.height) for c in scene.cameras],
-        vcodec=vcodec,
-        overflow=OverflowPolicy.WAIT,  # a simulation waits for its encoders: no frame is repeated
-        resume=resume,
-    )
-    return RolloutRecorder(sink, joint_names=list(spec.state_names))
+    for sink in observers:
+        if isinstance(sink, FoxgloveSink) and sink.port is not None:
+            click.echo(f"foxglove: ws://127.0.0.1:{sink.port}  (open {sink.app_url})", err=True)
 
 
 def recording_summary(recorder: RolloutRecorder) -> str:

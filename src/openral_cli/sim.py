@@ -14,17 +14,27 @@ import json
 import os
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import click
 
 from openral_cli.command_lifecycle import command_span
-from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, console_factories
+from openral_cli.console import CONSOLE_OPTION, ConsoleAddress, attach_console, with_console
 from openral_cli.errors import EXIT_OK, EXIT_RUNTIME, exit_codes
 from openral_cli.options import json_object
-from openral_cli.recording import VCODEC_OPTION, build_sim_recorder, recording_summary
+from openral_cli.recording import (
+    FOXGLOVE_OPTION,
+    MCAP_OPTION,
+    VCODEC_OPTION,
+    dataset_entry,
+    print_foxglove,
+    recorder_of,
+    recording_summary,
+    with_observers,
+    with_viewers,
+)
 from openral_cli.signals import StopSignals
 from openral_core import BenchmarkSuite, ROSRuntimeError, SimEnvironment
 
@@ -71,6 +81,8 @@ def sim() -> None:
 )
 @VCODEC_OPTION
 @CONSOLE_OPTION
+@FOXGLOVE_OPTION
+@MCAP_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout, nothing else.")
 @click.option("--otlp-endpoint", default=None, help="Export telemetry to this OTLP endpoint.")
 @click.pass_context
@@ -89,10 +101,16 @@ def sim_run(
     no_cameras: bool,
     vcodec: str,
     console: ConsoleAddress | None,
+    foxglove_port: int | None,
+    rosbag: Path | None,
     as_json: bool,
     otlp_endpoint: str | None,
 ) -> None:
-    """Run a skill on a scene's episodes and report success with its 95 % interval."""
+    """Run a skill on a scene's episodes and report success with its 95 % interval.
+
+    ``--dataset-out``, ``--save-video``, ``--mcap``, ``--foxglove`` and ``--console`` add the observer
+    entries they stand for to the scene's own ``observers:``, as they do on ``deploy``.
+    """
     from openral_sim import build, evaluation  # noqa: PLC0415 - for the simulation commands only
     from openral_sim.benchmark.rows import with_overrides  # noqa: PLC0415
 
@@ -102,24 +120,21 @@ def sim_run(
         if no_cameras:
             scene = scene.model_copy(update={"cameras": []})
         params = json_object(skill_params, "--skill-params")
-        observers: list[Callable[[Any], Any]] = []
-        written: list[Any] = []
+        if dataset_out is not None:  # first, as on deploy: it hears each tick before the viewers
+            scene = with_observers(scene, dataset_entry(dataset_out, resume=resume, vcodec=vcodec), first=True)
         if save_video is not None:
-            make_writer = evaluation.video_writer(scene, save_video, videos, scene.name)
+            scene = with_observers(
+                scene, evaluation.episode_video_entry(save_video, episodes=videos, prefix=scene.name)
+            )
+        scene = with_viewers(scene, rosbag=rosbag, foxglove_port=foxglove_port, config_path=config_path)
+        scene = with_console(scene, console)
+        watched: list[Any] = []
 
-            def make_video(spec: Any) -> Any:
-                written.append(make_writer(spec))
-                return written[-1]
-
-            observers.append(make_video)
-        observers.extend(console_factories(console))
-        recorders: list[Any] = []
-
-        def make_recorder(spec: Any) -> Any:
-            assert dataset_out is not None
-            recorder = build_sim_recorder(scene, spec, dataset_out, resume=resume, vcodec=vcodec)
-            recorders.append(recorder)
-            return recorder
+        def on_runner(runner: Any) -> None:
+            watched.extend(runner.observers)
+            _stop_on(runner, signals, recording=dataset_out is not None)
+            if foxglove_port is not None:
+                print_foxglove(runner.observers)  # on stderr: a --json stdout stays one document
 
         with (
             _stdout_to_stderr(as_json),
@@ -127,14 +142,8 @@ def sim_run(
                 "sim run", config_path, otlp_endpoint=otlp_endpoint, otlp_protocol=None, trace_sample_ratio=None
             ),
         ):
-            batch = build.run_episodes(
-                scene,
-                skill_id,
-                params,
-                observers=observers,
-                recorder=make_recorder if dataset_out is not None else None,
-                on_runner=lambda runner: _stop_on(runner, signals, recorders),
-            )
+            batch = build.run_episodes(scene, skill_id, params, on_runner=on_runner)
+        recorders = [recorder_of(watched)] if dataset_out is not None and watched else []
         failed = next((r.failure for r in recorders if r.failure is not None), None)
         if failed is not None:  # the episodes after the write failure were not recorded: no result to report
             for recorder in recorders:
@@ -148,8 +157,8 @@ def sim_run(
             **evaluation.summarize(batch.episodes, batch),
             "episodes": [e.model_dump(mode="json") for e in batch.episodes],
         }
-        if written:
-            report["videos"] = [str(p) for p in written[0].written]
+        if save_video is not None:
+            report["videos"] = [str(p) for p in _videos_written(watched)]
         if as_json:
             click.echo(json.dumps(report, indent=2))
         else:
@@ -161,12 +170,19 @@ def sim_run(
     raise SystemExit(code)
 
 
-def _stop_on(runner: Any, signals: StopSignals, recorders: list[Any]) -> None:
+def _stop_on(runner: Any, signals: StopSignals, *, recording: bool) -> None:
     """Stop signals, a recorder that can no longer write and the console's stop button all end the run."""
     signals.on_stop(runner.request_stop)
-    for recorder in recorders:
-        recorder.on_failure = runner.request_stop
+    if recording:
+        recorder_of(runner.observers).on_failure = runner.request_stop
     attach_console(runner, stop=runner.request_stop)  # no-op without --console
+
+
+def _videos_written(observers: list[Any]) -> list[Path]:
+    """The files the ``--save-video`` writer wrote."""
+    from openral_sim.video import EpisodeVideoWriter  # noqa: PLC0415 (PyAV: the 'dataset' extra)
+
+    return next((o.written for o in observers if isinstance(o, EpisodeVideoWriter)), [])
 
 
 def _summary_line(report: dict[str, Any]) -> str:

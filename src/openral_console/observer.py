@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable, Mapping
-from pathlib import Path
 from typing import IO, Any
 
 from openral_console.auth import TOKEN_PARAM, is_loopback, new_token
 from openral_console.feed import ConsoleFeed
 from openral_console.params import ConsoleParams
 from openral_console.server import ConsoleServer, check_installed
-from openral_core import TickResult, WorldState
+from openral_core import ObserverContext, TickResult, WorldState
 from openral_core.config import validate_model
 from openral_observability.observer import Thumbnail, TickObserver
 
@@ -58,15 +57,7 @@ class ConsoleObserver(TickObserver):
         self._closed = False
 
     @classmethod
-    def from_config(
-        cls,
-        params: Mapping[str, Any],
-        *,
-        robot: Any = None,
-        env: Any = None,
-        base_dir: Path | None = None,
-        option: str | None = None,
-    ) -> ConsoleObserver:
+    def from_config(cls, params: Mapping[str, Any], context: ObserverContext) -> ConsoleObserver:
         """Plugin constructor (observer ``console``); ``params`` are validated as :class:`ConsoleParams`.
 
         Opens nothing, but checks what :meth:`start` needs, so ``openral validate`` refuses what the run would.
@@ -76,7 +67,7 @@ class ConsoleObserver(TickObserver):
             ROSDependencyMissing: aiohttp is not installed (the ``console`` extra).
         """
         check_installed()
-        field = option or "observers[].params"
+        field = context.option or "observers[].params"
         config = validate_model(ConsoleParams, dict(params), field_prefix=field)
         return cls(config, option=field)
 

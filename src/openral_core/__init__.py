@@ -36,6 +36,7 @@ from openral_core.errors import (
 )
 from openral_core.execution import ExecutorConfig, FallbackSkill, SeamMode, StarvationFallback, VirtualLatency
 from openral_core.frames import FrameEncoding, SensorFrame
+from openral_core.observer_context import CameraSize, ObserverContext
 from openral_core.perception import (
     MotionMetadata,
     ObjectDetection2D,
@@ -62,6 +63,7 @@ __all__ = [
     "Action",
     "BenchmarkRun",
     "BenchmarkSuite",
+    "CameraSize",
     "ComponentDiagnostics",
     "ControlMode",
     "DeadlineOverrunPolicy",
@@ -81,6 +83,7 @@ __all__ = [
     "ObjectDetection2D",
     "ObjectsMetadata",
     "ObserverConfig",
+    "ObserverContext",
     "PerceptionEvent",
     "PixelBox",
     "Pose6D",

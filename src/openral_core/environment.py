@@ -243,6 +243,36 @@ class ObserverConfig(_Block):
         return self._option
 
 
+class Watched(BaseModel):
+    """The ``observers:`` block (and its ``thumbnail_hz`` shorthand) of a loop: a deployment or a scene.
+
+    Both build their observers from these entries through the same builder, so an entry means the
+    same on a robot and in simulation.
+    """
+
+    observers: list[ObserverConfig] = Field(default_factory=list)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _thumbnail_shorthand(cls, data: Any) -> Any:
+        """``thumbnail_hz: R`` is short for an ``observers`` entry ``{id: thumbnails, params: {rate_hz: R}}``."""
+        if not isinstance(data, dict) or "thumbnail_hz" not in data:
+            return data
+        data = dict(data)
+        rate = data.pop("thumbnail_hz")
+        if isinstance(rate, bool) or not isinstance(rate, int | float) or not 0 <= rate <= MAX_CAMERA_FPS:
+            raise ValueError(
+                f"thumbnail_hz must be a number from 0 to {MAX_CAMERA_FPS:g}, got {rate!r} "
+                "(it is short for observers: [{id: thumbnails, params: {rate_hz: ...}}])"
+            )
+        observers = list(data.get("observers") or [])
+        named = [o.get("id") if isinstance(o, dict) else getattr(o, "id", None) for o in observers]
+        if rate > 0 and THUMBNAILS_OBSERVER not in named:
+            observers.append({"id": THUMBNAILS_OBSERVER, "params": {"rate_hz": float(rate)}})
+            data["observers"] = observers
+        return data
+
+
 DEFAULT_SENSOR_READY_TIMEOUT_S = 10.0
 """How long a run waits for its required sensors' first fresh frames unless ``faults:`` says otherwise."""
 
@@ -311,7 +341,7 @@ class TakeoverConfig(_Block):
         return key
 
 
-class RobotEnvironment(_Block):
+class RobotEnvironment(Watched, _Block):
     """A deployment: robot, sensors, skill, task, rate and policies. Loaded from YAML."""
 
     name: str = Field(default="deployment", min_length=1)
@@ -328,29 +358,8 @@ class RobotEnvironment(_Block):
     """How a chunking skill's chunks are executed (skills with chunk size 1 do not use it)."""
     realtime: RealtimeConfig = Field(default_factory=RealtimeConfig)
     faults: FaultPolicy = Field(default_factory=FaultPolicy)
-    observers: list[ObserverConfig] = Field(default_factory=list)
     takeover: TakeoverConfig | None = None
     """A skill a person can take control with mid-run (a leader arm); none by default."""
-
-    @model_validator(mode="before")
-    @classmethod
-    def _thumbnail_shorthand(cls, data: Any) -> Any:
-        """``thumbnail_hz: R`` is short for an ``observers`` entry ``{id: thumbnails, params: {rate_hz: R}}``."""
-        if not isinstance(data, dict) or "thumbnail_hz" not in data:
-            return data
-        data = dict(data)
-        rate = data.pop("thumbnail_hz")
-        if isinstance(rate, bool) or not isinstance(rate, int | float) or not 0 <= rate <= MAX_CAMERA_FPS:
-            raise ValueError(
-                f"thumbnail_hz must be a number from 0 to {MAX_CAMERA_FPS:g}, got {rate!r} "
-                "(it is short for observers: [{id: thumbnails, params: {rate_hz: ...}}])"
-            )
-        observers = list(data.get("observers") or [])
-        named = [o.get("id") if isinstance(o, dict) else getattr(o, "id", None) for o in observers]
-        if rate > 0 and THUMBNAILS_OBSERVER not in named:
-            observers.append({"id": THUMBNAILS_OBSERVER, "params": {"rate_hz": float(rate)}})
-            data["observers"] = observers
-        return data
 
     @model_validator(mode="after")
     def _unique_sensor_ids(self) -> Self:

@@ -8,6 +8,7 @@ from typing import Any, Literal, Self
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from openral_core.config_files import CONFIG_DIR
+from openral_core.environment import Watched
 from openral_core.execution import ExecutorConfig, VirtualLatency
 
 SuccessKey = Literal["is_success", "succeed", "success"]
@@ -24,8 +25,8 @@ class SimCamera(BaseModel):
     height: int = Field(default=128, ge=8, le=4096)
 
 
-class SimEnvironment(BaseModel):
-    """A scene file: which environment, which task, how many episodes, what is rendered.
+class SimEnvironment(Watched):
+    """A scene file: which environment, which task, how many episodes, what is rendered, who watches.
 
     Episodes are independent units: episode ``i`` is reset with seed ``seed + i``, so a result
     depends on the seed alone, not on the process or machine that ran it.

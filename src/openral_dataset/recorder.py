@@ -48,8 +48,7 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from openral_core import (
-    RobotEnvironment,
-    RobotManifest,
+    ObserverContext,
     ROSConfigError,
     ROSRuntimeError,
     SensorFrame,
@@ -112,8 +111,9 @@ _BOTH_MODES: Final = (
 class RolloutRecorder(QueuedObserver):
     """Records the ticks between ``episode_start`` and ``episode_end`` into ``sink``.
 
-    Pass it to ``HardwareRunner(recorder=...)``; the runner's ``episode_start(task)`` and
-    ``episode_end(success=...)`` mark the episodes, and closing the runner finalizes the dataset.
+    Add it to a runner's observers (``HardwareRunner(recorder=...)`` is short for that); the runner's
+    ``episode_start(task)`` and ``episode_end(success=...)`` mark the episodes, and closing the
+    runner finalizes the dataset.
 
     Args:
         sink: Where episodes go. In highlight mode its encoders wait for free slots (frames come
@@ -183,48 +183,45 @@ class RolloutRecorder(QueuedObserver):
         super().__init__(name="openral-recorder", max_queue=max_queue, close_timeout_s=close_timeout_s)
 
     @classmethod
-    def from_config(
-        cls,
-        params: Mapping[str, Any],
-        *,
-        robot: RobotManifest,
-        env: RobotEnvironment,
-        base_dir: Path | None = None,
-        option: str | None = None,
-    ) -> RolloutRecorder:
+    def from_config(cls, params: Mapping[str, Any], context: ObserverContext) -> RolloutRecorder:
         """Plugin constructor (observer ``lerobot_dataset``): ``params`` are :class:`LeRobotDatasetParams`.
 
-        Records ``robot``'s joints and one video per sensor of ``env`` at the tick rate. Opens
-        nothing: the dataset folder is opened (created, or checked and resumed) by :meth:`start`.
-        ``option`` is the command-line option the entry stands for (``--dataset-out``): errors name it.
+        Records the loop's state and action names (a simulator's object state too) and one video
+        per camera at the tick rate. A free-running loop (a simulation) waits for its encoders
+        rather than repeat frames. Opens nothing: the dataset folder is opened (created, or
+        checked and resumed) by :meth:`start`. Errors name ``context.option`` (``--dataset-out``)
+        when the entry stands for one.
 
         Raises:
             ROSConfigError: A wrong parameter (named with the allowed keys); a tick rate that is not
-                a whole number (a dataset's fps is); a sensor id that cannot name a video folder.
+                a whole number (a dataset's fps is); a camera id that cannot name a video folder.
         """
         config = validate_model(LeRobotDatasetParams, dict(params), field_prefix="observers[].params")
-        if not math.isclose(env.rate_hz, round(env.rate_hz)):
+        if not math.isclose(context.rate_hz, round(context.rate_hz)):
             raise ROSConfigError(
-                f"a dataset records whole frames per second; the tick rate is {env.rate_hz:g} Hz",
-                field="rate_hz",
+                f"a dataset records whole frames per second; the tick rate is {context.rate_hz:g} Hz",
+                field=context.option or "rate_hz",
                 hint="use a whole number of Hz to record",
             )
-        field = option or _ROOT_FIELD
+        field = context.option or _ROOT_FIELD
         sink = LeRobotDatasetSink(
-            resolve_user_path(config.root, base_dir, field=field),
-            fps=round(env.rate_hz),
-            robot_type=robot.robot_id,
-            joint_names=robot.joint_names,
-            cameras=[schema.CameraSpec(s.sensor_id, s.width or 0, s.height or 0) for s in env.sensors],
+            resolve_user_path(config.root, context.base_dir, field=field),
+            fps=round(context.rate_hz),
+            robot_type=context.robot_id,
+            joint_names=context.joint_names,
+            action_names=context.action_names,
+            environment_state_names=context.environment_state_names,
+            cameras=[schema.CameraSpec(c.id, c.width, c.height) for c in context.cameras],
             vcodec=config.vcodec,
+            overflow=OverflowPolicy.WAIT if context.free_running else OverflowPolicy.REPEAT,
             resume=config.resume,
             field=field,
             defer_open=True,
-            takeover=env.takeover is not None,
+            takeover=context.takeover,
         )
         return cls(
             sink,
-            joint_names=robot.joint_names,
+            joint_names=context.joint_names,
             episode_every_s=config.episode_every_s,
             highlight_s=config.highlight_s,
         )

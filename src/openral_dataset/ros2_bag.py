@@ -30,7 +30,7 @@ from typing import IO, Any, Final
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from openral_core import RobotManifest, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
+from openral_core import ObserverContext, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
 from openral_core.config import validate_model
 from openral_core.config_files import read_config_file, resolve_user_path
 from openral_observability.observer import Thumbnail
@@ -116,31 +116,23 @@ class Ros2BagWriter(QueuedObserver):
         super().__init__(name="openral-rosbag", max_queue=4096)
 
     @classmethod
-    def from_config(
-        cls,
-        params: Mapping[str, Any],
-        *,
-        robot: RobotManifest,
-        env: Any,
-        base_dir: Path | None = None,
-        option: str | None = None,
-    ) -> Ros2BagWriter:
-        """Plugin constructor (observer ``ros2_bag``): ``params`` are ``path`` (relative to the deployment's
-        folder), ``overwrite`` and ``attach``. Camera images come from the ``thumbnails`` observer.
-        ``option`` is the command-line option the entry stands for (``--mcap``): errors name it.
+    def from_config(cls, params: Mapping[str, Any], context: ObserverContext) -> Ros2BagWriter:
+        """Plugin constructor (observer ``ros2_bag``): ``params`` are ``path`` (relative to the loop's
+        ``base_dir``), ``overwrite`` and ``attach``. Camera images come from the ``thumbnails`` observer.
+        Errors name ``context.option`` (``--mcap``) when the entry stands for one.
 
         Raises:
             ROSConfigError: A wrong parameter, or the file could not be created there.
         """
         config = validate_model(Ros2BagParams, dict(params), field_prefix="observers[].params")
-        field = option or "observers[].params.path"
-        path = resolve_user_path(config.path, base_dir, field=field)
+        field = context.option or "observers[].params.path"
+        path = resolve_user_path(config.path, context.base_dir, field=field)
         attach = None
         if config.attach is not None:
-            attach = resolve_user_path(config.attach, base_dir, field="observers[].params.attach")
+            attach = resolve_user_path(config.attach, context.base_dir, field="observers[].params.attach")
         return cls(
             path,
-            joint_names=robot.joint_names,
+            joint_names=list(context.joint_names),
             overwrite=config.overwrite,
             field=field,
             deployment=attach,

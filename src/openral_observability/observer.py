@@ -9,8 +9,8 @@ raises is logged and detached; it never stops the robot. Observers also hear the
 boundaries the runner is given, and are closed (flushed) on every exit path.
 
 A deployment lists observers in its ``observers:`` block; each is a plugin in the
-``openral.observers`` entry-point group built with
-``Cls.from_config(params, robot=..., env=..., base_dir=...)``, which validates ``params`` with
+``openral.observers`` entry-point group built with ``Cls.from_config(params, context)``
+(:class:`ObserverPlugin`; a simulated scene's entries too), which validates ``params`` with
 its own typed model and opens nothing: no socket, no session, no port (``openral validate``
 builds it). An observer that needs one opens it in ``start()`` (:class:`StartableObserver`), which
 the runner calls once when it activates, before the first tick. Observers subclass
@@ -19,11 +19,11 @@ the runner calls once when it activates, before the first tick. Observers subcla
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
-from openral_core import TickResult, WorldState
+from openral_core import ObserverContext, TickResult, WorldState
 
 
 @runtime_checkable
@@ -43,6 +43,23 @@ class TickObserver(Protocol):
 
     def close(self) -> None:
         """Flush and release; called once when the runner deactivates."""
+
+
+class ObserverPlugin(Protocol):
+    """What an ``openral.observers`` entry point names: a class (or factory) built from an entry's ``params``.
+
+    ``from_config`` validates ``params`` with the observer's own model and reads what it needs of
+    the loop from ``context`` (names, cameras, rate, where relative paths start). It opens nothing:
+    ``openral validate`` builds observers and closes them again.
+    """
+
+    def from_config(self, params: Mapping[str, Any], context: ObserverContext) -> TickObserver:
+        """The observer for one entry.
+
+        Raises:
+            ROSConfigError: A wrong parameter, naming ``context.option`` when the entry stands for one.
+        """
+        ...
 
 
 @runtime_checkable

@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from openral_core import ROSConfigError, TickResult, WorldState
+from openral_core import ObserverContext, ROSConfigError, TickResult, WorldState
 from openral_core.config import validate_model
 from openral_observability.observer import TickObserver
 from openral_perception.detectors.base import EventDetector
@@ -92,12 +92,12 @@ class PerceptionObserver(TickObserver):
         self.sensors = None if sensors is None else set(sensors)
 
     @classmethod
-    def from_config(
-        cls, params: Mapping[str, Any], *, robot: Any, env: Any, base_dir: Path | None = None
-    ) -> PerceptionObserver:
+    def from_config(cls, params: Mapping[str, Any], context: ObserverContext) -> PerceptionObserver:
         """Plugin constructor (observer ``perception``); ``params`` are :class:`~.params.PerceptionParams`."""
         config = validate_model(PerceptionParams, dict(params), field_prefix=PARAMS_FIELD)
-        return cls(build_publisher(config, robot_id=robot.robot_id, base_dir=base_dir), sensors=config.sensors)
+        return cls(
+            build_publisher(config, robot_id=context.robot_id, base_dir=context.base_dir), sensors=config.sensors
+        )
 
     def start(self) -> None:
         """Open the sinks and start the detector worker (the Zenoh session listens from here on)."""

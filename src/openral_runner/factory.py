@@ -12,23 +12,28 @@ from typing import Any
 
 import structlog
 
-from openral_core import RobotEnvironment, RobotManifest, ROSConfigError
+from openral_core import ObserverContext, RobotEnvironment, RobotManifest, ROSConfigError
 from openral_core.config_files import resolve_user_path
-from openral_core.errors import renamed_field
 from openral_core.plugins import (
     HALS_GROUP,
-    OBSERVERS_GROUP,
     SAFETY_CLIENTS_GROUP,
     SENSOR_BACKENDS_GROUP,
-    SKILLS_GROUP,
     PluginRegistry,
 )
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.protocol import HAL, HALPlugin
 from openral_observability.observer import TickObserver
-from openral_rskill.base import OfflineConfigCheck, OfflineObservation, RobotInputCheck, RSkillBase, RSkillPlugin
+from openral_rskill.base import OfflineConfigCheck, OfflineObservation, RobotInputCheck, RSkillBase
 from openral_rskill.manifest import RSkillManifest
 from openral_runner.clock import Clock
+from openral_runner.composition import (
+    OBSERVER_REGISTRY,
+    SKILL_REGISTRY,
+    build_fallback_skill,
+    build_observers,
+    build_skill,
+    close_observers,
+)
 from openral_runner.envelope import EnvelopeSafetyClient
 from openral_runner.hardware import HardwareRunner
 from openral_runner.safety import SafetyClient, SafetyClientPlugin
@@ -37,9 +42,6 @@ from openral_runner.takeover import Takeover
 from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
-
-SKILL_REGISTRY: PluginRegistry[RSkillPlugin] = PluginRegistry(SKILLS_GROUP, kind="skill", field="vla.id")
-"""Skill id → skill class (``Cls.from_config(params, robot=..., rate_hz=...)``)."""
 
 SENSOR_BACKEND_REGISTRY: PluginRegistry[SensorBackendPlugin] = PluginRegistry(
     SENSOR_BACKENDS_GROUP, kind="sensor backend", field="sensors[].backend"
@@ -56,12 +58,6 @@ SAFETY_CLIENT_REGISTRY: PluginRegistry[SafetyClientPlugin] = PluginRegistry(
     SAFETY_CLIENTS_GROUP, kind="safety client", field="safety.client"
 )
 """Client id → safety client class (``Cls.from_config(config, robot=..., rate_hz=...)``)."""
-
-OBSERVER_REGISTRY: PluginRegistry[Any] = PluginRegistry(OBSERVERS_GROUP, kind="observer", field="observers[].id")
-"""Observer id → observer class (``Cls.from_config(params, robot=..., env=..., base_dir=...)``)."""
-
-_SKILL_PARAMS = ("vla.params", "params")
-"""How a skill names its parameters in its errors (a deployment's ``vla.params``, or its own)."""
 
 JOINT_STATE_MAX_AGE_TICKS = 3
 """A joint state older than this many periods is stale (it is read every tick)."""
@@ -89,7 +85,7 @@ def build_runner(
     robot = load_robot_manifest(env.hal.robot_id)
     skill_params = _skill_params(env, robot, base_dir)
     hal = HAL_REGISTRY[env.hal.adapter](robot, env.hal.params)
-    skill: RSkillBase = SKILL_REGISTRY[env.vla.id].from_config(skill_params, robot=robot, rate_hz=env.rate_hz)
+    skill = build_skill(env.vla.id, skill_params, robot=robot, rate_hz=env.rate_hz)
     _check_cameras(skill, env)
     if isinstance(skill, RobotInputCheck):
         skill.check_robot_inputs()
@@ -101,6 +97,8 @@ def build_runner(
     }
     if clock is not None:
         aggregator_kwargs["clock"] = clock.now_ns
+    fallback = build_fallback_skill(env.executor, robot=robot, rate_hz=env.rate_hz)
+    takeover = _takeover(env, robot, safety)
     runner = HardwareRunner(
         hal=hal,
         skill=skill,
@@ -118,13 +116,12 @@ def build_runner(
         realtime=env.realtime,
         garbage_collection=env.realtime.garbage_collection,
         sync=env.sync,
-        thumbnail_hz=0.0,  # thumbnails are an ``observers:`` entry of the deployment
+        observers=build_observers(env.observers, ObserverContext.of_deployment(env, robot, base_dir)),
         executor=env.executor,
         action_names=robot.joint_names,
-        fallback_skill=_fallback_skill(env, robot),
-        takeover=_takeover(env, robot, safety),
+        fallback_skill=fallback,
+        takeover=takeover,
     )
-    runner.observers.extend(_build_observers(env, robot, base_dir))
     return runner, skill
 
 
@@ -154,7 +151,8 @@ def check_deployment(env: RobotEnvironment, *, base_dir: Path | None = None) -> 
     for index, _ in enumerate(env.sensors):
         _build_reader(index, env, hal, robot, base_dir)
     takeover = _takeover(env, robot, _safety_client(env, robot))
-    _release(None, _fallback_skill(env, robot), _build_observers(env, robot, base_dir))
+    observers = build_observers(env.observers, ObserverContext.of_deployment(env, robot, base_dir))
+    _release(None, build_fallback_skill(env.executor, robot=robot, rate_hz=env.rate_hz), observers)
     if takeover is not None:
         takeover.skill.shutdown()
 
@@ -181,8 +179,7 @@ def _release(skill: RSkillBase | None, fallback: RSkillBase | None, observers: l
     for built in (skill, fallback):
         if built is not None:
             built.shutdown()
-    for observer in observers:
-        observer.close()
+    close_observers(observers)
 
 
 def _skill_params(env: RobotEnvironment, robot: RobotManifest, base_dir: Path | None) -> dict[str, Any]:
@@ -207,36 +204,19 @@ def _safety_client(env: RobotEnvironment, robot: RobotManifest) -> SafetyClient:
     return SAFETY_CLIENT_REGISTRY[env.safety.client].from_config(env.safety, robot=robot, rate_hz=env.rate_hz)
 
 
-def _build_observers(env: RobotEnvironment, robot: RobotManifest, base_dir: Path | None) -> list[TickObserver]:
-    """The ``observers:`` entries, built (they open nothing until the runner starts them)."""
-    observers: list[TickObserver] = []
-    for index, spec in enumerate(env.observers):
-        observer_cls = OBSERVER_REGISTRY.resolve(spec.id, field=f"observers[{index}].id")
-        named = {} if spec.option is None else {"option": spec.option}  # only the shorthands' built-ins take it
-        observers.append(observer_cls.from_config(spec.params, robot=robot, env=env, base_dir=base_dir, **named))
-    return observers
-
-
-def _fallback_skill(env: RobotEnvironment, robot: RobotManifest) -> RSkillBase | None:
-    spec = env.executor.fallback_skill
-    if spec is None:
-        return None
-    skill: RSkillBase = SKILL_REGISTRY.resolve(spec.id, field="executor.fallback_skill.id").from_config(
-        spec.params, robot=robot, rate_hz=env.rate_hz
-    )
-    return skill
-
-
 def _takeover(env: RobotEnvironment, robot: RobotManifest, safety: SafetyClient) -> Takeover | None:
     """The takeover skill and its switch; a switch ramps at the envelope's step limit (the robot's, without one)."""
     spec = env.takeover
     if spec is None:
         return None
-    skill_cls = SKILL_REGISTRY.resolve(spec.skill, field="takeover.skill")
-    try:
-        skill: RSkillBase = skill_cls.from_config(spec.params, robot=robot, rate_hz=env.rate_hz)
-    except ROSConfigError as exc:  # the skill names its parameters as a vla's
-        raise renamed_field(exc, _SKILL_PARAMS, "takeover.params") from exc
+    skill = build_skill(
+        spec.skill,
+        spec.params,
+        robot=robot,
+        rate_hz=env.rate_hz,
+        field="takeover.skill",
+        params_field="takeover.params",
+    )
     if isinstance(safety, EnvelopeSafetyClient):
         max_step = safety.max_step
     else:

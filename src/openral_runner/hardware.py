@@ -53,6 +53,9 @@ from openral_world_state import WorldStateAggregator
 
 _log = structlog.get_logger(__name__)
 
+_DEFAULT_THUMBNAIL_HZ = 25.0
+"""Thumbnails per second of a runner built in code without ``observers`` (its ``thumbnail_hz`` default)."""
+
 _PHASE_MARGIN_S = 0.002
 """Slack between a camera frame's arrival and the tick that reads it, for capture-thread jitter."""
 
@@ -73,11 +76,15 @@ class HardwareRunner(SkillRunnerBase):
         task: Instruction placed in every world state.
         realtime: Real-time knobs applied to the calling thread at activation.
         sync: Cameras read as one set with bounded capture skew each tick.
-        thumbnail_hz: Shorthand for a ``thumbnails`` observer: small JPEG thumbnails of
-            each camera at this rate, encoded once off the tick thread for the dashboard span and
-            every thumbnail subscriber (the Foxglove view); 0 (or no camera) adds none.
-        recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
-            observer, hears every ``episode_start``/``episode_end`` and is closed with the runner.
+        observers: What watches the ticks, as built from a deployment's ``observers:`` entries
+            (:func:`~openral_runner.composition.build_observers`); started at activation and
+            closed with the runner.
+        thumbnail_hz: Shorthand for a ``thumbnails`` observer added after ``observers``: small JPEG
+            thumbnails of each camera at this rate for the dashboard span and every thumbnail
+            subscriber; 0 (or no camera) adds none. Default: 25 Hz for a runner given no
+            ``observers``, none for one given them (its entries say whether it has thumbnails).
+        recorder: Shorthand for an observer that records episodes (a ``RolloutRecorder``), added
+            as the first observer.
         sensor_ready_timeout_s: How long a run waits, before its first tick, for every required
             sensor to deliver a frame within its ``max_age_ms``.
         **base_kwargs: ``InferenceRunnerBase`` options (rate, policy, clock, ...).
@@ -94,13 +101,14 @@ class HardwareRunner(SkillRunnerBase):
         task: str | None = None,
         realtime: RealtimeConfig | None = None,
         sync: SyncConfig | None = None,
-        thumbnail_hz: float = 25.0,
+        observers: Sequence[TickObserver] | None = None,
+        thumbnail_hz: float | None = None,
         recorder: TickObserver | None = None,
         sensor_ready_timeout_s: float = DEFAULT_SENSOR_READY_TIMEOUT_S,
         **base_kwargs: Any,
     ) -> None:
         base_kwargs.setdefault("runner_name", "hardware_runner")
-        super().__init__(skill=skill, safety_client=safety_client, task=task, recorder=recorder, **base_kwargs)
+        super().__init__(skill=skill, safety_client=safety_client, task=task, **base_kwargs)
         self.hal = hal
         self.aggregator = aggregator
         self.sensor_readers = list(sensor_readers)
@@ -112,12 +120,13 @@ class HardwareRunner(SkillRunnerBase):
             )
         self.sensor_ready_timeout_s = sensor_ready_timeout_s
         self._reads = {r.sensor_id: SensorReads() for r in self.sensor_readers}
+        if thumbnail_hz is None:
+            thumbnail_hz = _DEFAULT_THUMBNAIL_HZ if observers is None else 0.0
         if not (math.isfinite(thumbnail_hz) and thumbnail_hz >= 0):
             raise ROSConfigError(f"must be a finite number >= 0, got {thumbnail_hz}", field="thumbnail_hz")
-        self.thumbnails = ThumbnailPublisher(thumbnail_hz) if self.sensor_readers and thumbnail_hz > 0 else None
-        """The thumbnails observer the ``thumbnail_hz`` keyword added (``None`` when it added none)."""
-        if self.thumbnails is not None:
-            self.observers.append(self.thumbnails)
+        self.observers.extend(([] if recorder is None else [recorder]) + list(observers or ()))
+        if self.sensor_readers and thumbnail_hz > 0:
+            self.observers.append(ThumbnailPublisher(thumbnail_hz))
         synced = set(sync.sensors) if sync is not None else set()
         clock_ns = self._clock.now_ns
         self._synced_readers = [

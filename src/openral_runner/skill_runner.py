@@ -29,7 +29,6 @@ from openral_core import (
     ExecutorConfig,
     ROSConfigError,
     ROSEStopRequested,
-    ROSRuntimeError,
     ROSSafetyViolation,
     ROSStopRequested,
     RSkillState,
@@ -40,7 +39,6 @@ from openral_core import (
 )
 from openral_core.actions import action_problem
 from openral_observability import metrics, record_error, semconv
-from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
 from openral_rskill.executor import ChunkedExecutor, Outcome
 from openral_runner.base import InferenceRunnerBase
@@ -58,8 +56,6 @@ class SkillRunnerBase(InferenceRunnerBase):
         skill: An active skill.
         safety_client: Checks every action; defaults to ``NullSafetyClient``.
         task: Instruction placed in every world state.
-        recorder: An observer that records episodes (a ``RolloutRecorder``); it is the first
-            observer, hears every episode boundary and is closed with the runner.
         executor: How a chunking skill (chunk size above 1) is executed; it then runs on the
             executor's worker and the tick takes its rows (:mod:`openral_rskill.executor`).
         action_names: The action's dimensions (the robot's joints, an env's action names): what
@@ -76,7 +72,6 @@ class SkillRunnerBase(InferenceRunnerBase):
         skill: RSkillBase,
         safety_client: SafetyClient | None = None,
         task: str | None = None,
-        recorder: TickObserver | None = None,
         executor: ExecutorConfig | None = None,
         action_names: list[str] | None = None,
         fallback_skill: RSkillBase | None = None,
@@ -89,9 +84,6 @@ class SkillRunnerBase(InferenceRunnerBase):
         self.skill = skill
         self.safety_client: SafetyClient = safety_client or NullSafetyClient()
         self.task = task
-        self.recorder: TickObserver | None = None
-        if recorder is not None:
-            self.attach_recorder(recorder)
         self.fallback_skill = fallback_skill
         self.takeover = takeover
         self._last_sent: list[float] | None = None
@@ -103,19 +95,6 @@ class SkillRunnerBase(InferenceRunnerBase):
             self.executor = ChunkedExecutor.for_skill(
                 skill, executor, action_names=action_names, virtual_delay=virtual_delay
             )
-
-    def attach_recorder(self, recorder: TickObserver) -> None:
-        """Make ``recorder`` the runner's recorder: its first observer, closed with the runner.
-
-        Raises:
-            ROSRuntimeError: The runner is active, or already has a recorder.
-        """
-        if self.is_active:
-            raise ROSRuntimeError("attach the recorder before activate()")
-        if self.recorder is not None:
-            raise ROSRuntimeError("the runner already has a recorder")
-        self.recorder = recorder
-        self.observers.insert(0, recorder)
 
     def activate(self) -> None:
         """Start the fallback skill (a chunking skill's, if any) and the takeover skill, then the base."""

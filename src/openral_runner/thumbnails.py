@@ -17,7 +17,6 @@ import base64
 import io
 import time
 from collections.abc import Callable, Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,7 +24,7 @@ import structlog
 from PIL import Image
 from pydantic import BaseModel, ConfigDict, Field
 
-from openral_core import FrameEncoding, SensorFrame, TickResult, WorldState
+from openral_core import FrameEncoding, ObserverContext, SensorFrame, TickResult, WorldState
 from openral_core.config import validate_model
 from openral_core.environment import MAX_CAMERA_FPS
 from openral_observability import semconv, tracer
@@ -106,9 +105,7 @@ class ThumbnailPublisher(LatestPerKeyObserver[str, SensorFrame]):
         self.sink_errors = 0
 
     @classmethod
-    def from_config(
-        cls, params: Mapping[str, Any], *, robot: Any = None, env: Any = None, base_dir: Path | None = None
-    ) -> ThumbnailPublisher:
+    def from_config(cls, params: Mapping[str, Any], context: ObserverContext) -> ThumbnailPublisher:
         """Plugin constructor (observer ``thumbnails``); ``params`` are validated as :class:`ThumbnailParams`.
 
         Raises:

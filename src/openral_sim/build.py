@@ -6,7 +6,7 @@ import contextlib
 import json
 import os
 import socket
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,15 +20,18 @@ from openral_core import (
     TickResult,
     WorldState,
 )
-from openral_core.errors import renamed_field
 from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
-from openral_runner.factory import SKILL_REGISTRY
+from openral_runner.composition import (
+    OBSERVER_REGISTRY,
+    SKILL_REGISTRY,
+    build_fallback_skill,
+    build_observers,
+    close_observers,
+)
+from openral_runner.composition import build_skill as build_any_skill
 from openral_sim.env import EnvSpec, SimEnv, make_env
 from openral_sim.runner import SimRunner
-
-_PARAMS_PREFIXES = ("vla.params", "params")
-"""Where a skill's parameter errors point (a deployment's ``vla.params``); in simulation, the skill's parameters."""
 
 
 @dataclass(frozen=True)
@@ -73,13 +76,14 @@ def build_skill(
     Raises:
         ROSConfigError: An unknown skill or bad parameters, naming ``fields``.
     """
-    manifest = spec.action_manifest(scene.robot or scene.env)
-    skill_class = SKILL_REGISTRY.resolve(skill_id, field=fields.skill)
-    try:
-        skill: RSkillBase = skill_class.from_config(dict(skill_params or {}), robot=manifest, rate_hz=spec.control_hz)
-    except ROSConfigError as exc:
-        raise _renamed(exc, fields.params) from exc
-    return skill
+    return build_any_skill(
+        skill_id,
+        skill_params or {},
+        robot=spec.action_manifest(scene.robot or scene.env),
+        rate_hz=spec.control_hz,
+        field=fields.skill,
+        params_field=fields.params,
+    )
 
 
 def check_evaluation(
@@ -91,10 +95,11 @@ def check_evaluation(
     spec: EnvSpec | None = None,
     simulator_elsewhere: bool = False,
 ) -> EnvSpec | None:
-    """Build the scene's environment and the skill (and the scene's fallback skill) once, and let them go.
+    """Build the scene's environment, the skill, the scene's fallback skill and observers once, and let them go.
 
     What a run would refuse is refused here, before any episode of any run: an unknown
-    environment or skill, bad parameters. Returns the environment's spec, to pass back as
+    environment, skill or observer, bad parameters (observers are built, not started: nothing
+    is opened). Returns the environment's spec, to pass back as
     ``spec`` for the next check of the same scene (the environment is then not built again).
 
     Args:
@@ -110,10 +115,13 @@ def check_evaluation(
             spec = env.spec
             env.close()
         _fallback_skill(scene, spec)
+        close_observers(build_observers(scene.observers, spec.observer_context(scene)))
     except ROSDependencyMissing:
         if not simulator_elsewhere:
             raise
         SKILL_REGISTRY.resolve(skill_id, field=fields.skill)
+        for index, entry in enumerate(scene.observers):
+            OBSERVER_REGISTRY.resolve(entry.id, field=f"observers[{index}].id")
         return None
     except ROSConfigError as exc:
         raise fields.in_scene(exc) from exc
@@ -154,19 +162,9 @@ def build_sim_runner(
 
 def _fallback_skill(scene: SimEnvironment, spec: EnvSpec) -> RSkillBase | None:
     """The skill that acts while the scene's chunking skill is starved, if the scene names one."""
-    fallback = scene.executor.fallback_skill
-    if fallback is None:
-        return None
-    manifest = spec.action_manifest(scene.robot or scene.env)
-    skill: RSkillBase = SKILL_REGISTRY.resolve(fallback.id, field="executor.fallback_skill.id").from_config(
-        fallback.params, robot=manifest, rate_hz=spec.control_hz
+    return build_fallback_skill(
+        scene.executor, robot=spec.action_manifest(scene.robot or scene.env), rate_hz=spec.control_hz
     )
-    return skill
-
-
-def _renamed(exc: ROSConfigError, prefix: str) -> ROSConfigError:
-    """``exc`` naming the skill's parameters as ``prefix`` (a skill names them as a deployment's ``vla.params``)."""
-    return renamed_field(exc, _PARAMS_PREFIXES, prefix)
 
 
 class SkillFailed(ROSSkillError):
@@ -218,8 +216,6 @@ def run_episodes(
     *,
     first_episode: int = 0,
     n_episodes: int | None = None,
-    observers: Sequence[Callable[[EnvSpec], TickObserver]] = (),
-    recorder: Callable[[EnvSpec], TickObserver] | None = None,
     on_runner: Callable[[SimRunner], None] | None = None,
     fields: SkillFields = OPTION_FIELDS,
 ) -> EpisodeBatch:
@@ -228,10 +224,10 @@ def run_episodes(
     The environment and the skill are built for this call and let go at its end; :class:`SimCache`
     keeps them for the next call instead.
 
+    The scene's ``observers:`` entries are built for the env's spaces and rate, started with the
+    runner and closed with it.
+
     Args:
-        observers: Make the observers of the ticks (a video writer) for the env's spaces and rate;
-            closed with the runner.
-        recorder: Makes the recorder of the episodes (a ``RolloutRecorder``) for the env's spaces.
         on_runner: Called with the active runner before the first tick (a signal handler's hook).
         fields: How errors name the skill and its parameters.
 
@@ -243,7 +239,7 @@ def run_episodes(
         scene, skill_id, skill_params, first_episode=first_episode, n_episodes=n_episodes, fields=fields
     )
     try:
-        batch = _drive(runner, observers=observers, recorder=recorder, on_runner=on_runner, start_skill=True)
+        batch = _drive(runner, on_runner=on_runner, start_skill=True)
     finally:
         runner.skill.shutdown()
     batch.env_builds = {process_name(): 1}
@@ -280,7 +276,6 @@ class SimCache:
         *,
         first_episode: int = 0,
         n_episodes: int | None = None,
-        observers: Sequence[Callable[[EnvSpec], TickObserver]] = (),
         fields: SkillFields = OPTION_FIELDS,
     ) -> EpisodeBatch:
         """Run episodes ``first_episode ..`` of ``scene`` as :func:`run_episodes` does, on the kept env and skill.
@@ -300,7 +295,7 @@ class SimCache:
                 close_env=False,
                 fallback_skill=_fallback_skill(scene, env.spec),
             )
-            batch = _drive(runner, observers=observers, recorder=None, on_runner=None, start_skill=False)
+            batch = _drive(runner, on_runner=None, start_skill=False)
             clean = True
         finally:
             if not clean:
@@ -354,7 +349,7 @@ class SimCache:
                 env.close()
 
     def _env_for(self, scene: SimEnvironment) -> SimEnv:
-        key = scene.model_dump_json(exclude={"name", "n_episodes", "seed"})
+        key = scene.model_dump_json(exclude={"name", "n_episodes", "seed", "observers"})
         if self._env is not None and key == self._env_key:
             return self._env
         self.close()
@@ -380,25 +375,15 @@ def process_name() -> str:
 def _drive(
     runner: SimRunner,
     *,
-    observers: Sequence[Callable[[EnvSpec], TickObserver]],
-    recorder: Callable[[EnvSpec], TickObserver] | None,
     on_runner: Callable[[SimRunner], None] | None,
     start_skill: bool,
 ) -> EpisodeBatch:
-    """Attach the observers, run the runner's episodes and deactivate it; the failure is set, not raised."""
-    made: list[TickObserver] = []
+    """Build the scene's observers, run the runner's episodes and deactivate it; the failure is set, not raised."""
     try:
-        if recorder is not None:
-            made.append(recorder(runner.env.spec))
-            runner.attach_recorder(made[-1])
-        for make in observers:
-            made.append(make(runner.env.spec))
-            runner.observers.append(made[-1])
+        runner.observers.extend(build_observers(runner.scene.observers, runner.env.spec.observer_context(runner.scene)))
     except BaseException:
         if runner.close_env:
             runner.env.close()
-        for observer in made:
-            observer.close()
         raise
     batch = EpisodeBatch(episodes=runner.episode_results)
     runner.observers.append(_StepCollector(batch))
@@ -411,6 +396,12 @@ def _drive(
             on_runner(runner)
         ceiling = runner.n_episodes * (runner.scene.max_steps + 1) + 1
         runner.run(max_ticks=ceiling)
+    except BaseException:
+        if not runner.is_active:  # refused while starting (a skill, a dataset folder, a port): nothing ran
+            close_observers(runner.observers)
+            if runner.close_env:
+                runner.env.close()
+        raise
     finally:
         runner.deactivate()
     batch.failure = runner.failure

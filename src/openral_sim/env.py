@@ -10,11 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
-from openral_core import JointSpec, RobotManifest, SimEnvironment
+from openral_core import CameraSize, JointSpec, ObserverContext, RobotManifest, SimEnvironment
 from openral_core.plugins import SIM_ENVS_GROUP, PluginRegistry
 
 ActionKind = Literal["delta", "absolute"]
@@ -71,6 +72,24 @@ class EnvSpec:
             for name, lo, hi in zip(self.action_names, self.action_low, self.action_high, strict=True)
         ]
         return RobotManifest(robot_id=robot_id, name=f"{robot_id} action space", joints=joints)
+
+    def observer_context(self, scene: SimEnvironment) -> ObserverContext:
+        """The loop ``scene``'s observers watch: this env's names and rate, the scene's cameras and task.
+
+        A simulation is free-running for its observers: nothing moves on while a recorder's encoders
+        catch up, so it waits for them rather than repeat frames.
+        """
+        return ObserverContext(
+            robot_id=scene.robot or scene.env_id or scene.env,
+            rate_hz=self.control_hz,
+            joint_names=self.state_names,
+            action_names=self.action_names,
+            environment_state_names=self.environment_state_names,
+            cameras=tuple(CameraSize(c.name, c.width, c.height) for c in scene.cameras),
+            task=scene.task,
+            free_running=True,
+            base_dir=None if scene.base_dir is None else Path(scene.base_dir),
+        )
 
 
 @dataclass

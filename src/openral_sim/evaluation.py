@@ -18,7 +18,7 @@ import math
 import multiprocessing
 import multiprocessing.util
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -28,10 +28,8 @@ from typing import Any
 import numpy as np
 import structlog
 
-from openral_core import EpisodeResult, ROSConfigError, ROSDependencyMissing, SimEnvironment
-from openral_observability.observer import TickObserver
+from openral_core import EpisodeResult, ObserverConfig, ROSDependencyMissing, SimEnvironment
 from openral_sim.build import EpisodeBatch, SimCache, SkillFailed
-from openral_sim.env import EnvSpec
 
 _log = structlog.get_logger(__name__)
 
@@ -53,16 +51,16 @@ def wilson_interval(successes: int, n: int, z: float = WILSON_Z_95) -> tuple[flo
 
 @dataclass(frozen=True)
 class EpisodeUnit:
-    """A slice of a scene's episodes for one skill: what one worker runs."""
+    """A slice of a scene's episodes for one skill: what one worker runs, as plain data that pickles."""
 
     scene: SimEnvironment
     skill_id: str
     skill_params: Mapping[str, Any] = field(default_factory=dict)
     first_episode: int = 0
     n_episodes: int = 1
-    video_dir: str | None = None
-    """Film this unit's episodes below ``videos`` into this folder (the scene's first camera)."""
-    videos: int = 0
+    observers: list[ObserverConfig] = field(default_factory=list)
+    """The entries of what watches this unit's episodes (the scene's own, then any added, e.g. a video's);
+    each is built where the unit runs."""
 
 
 def split_episodes(
@@ -72,7 +70,7 @@ def split_episodes(
     parts = max(1, min(parts, n_episodes))
     bounds = np.linspace(0, n_episodes, parts + 1).round().astype(int)
     return [
-        EpisodeUnit(scene, skill_id, dict(skill_params), int(lo), int(hi - lo))
+        EpisodeUnit(scene, skill_id, dict(skill_params), int(lo), int(hi - lo), list(scene.observers))
         for lo, hi in itertools.pairwise(bounds)
         if hi > lo
     ]
@@ -95,7 +93,7 @@ def schedule_episodes(
     first = 0
     while first < n_episodes:
         size = max(1, math.ceil((n_episodes - first) / (2 * processes)))
-        units.append(EpisodeUnit(scene, skill_id, dict(skill_params), first, size))
+        units.append(EpisodeUnit(scene, skill_id, dict(skill_params), first, size, list(scene.observers)))
         first += size
     return units
 
@@ -135,19 +133,14 @@ def process_cache() -> SimCache:
 
 
 def _run_unit(unit: EpisodeUnit, cache: SimCache) -> EpisodeBatch:
-    observers = []
-    if unit.video_dir is not None and unit.first_episode < unit.videos and unit.scene.cameras:
-        observers.append(
-            video_writer(unit.scene, Path(unit.video_dir), unit.videos, f"{unit.scene.name}_{unit.skill_id}")
-        )
+    """Run ``unit``'s episodes with its observers (they replace the scene's own entries for this run)."""
     try:
         return cache.run(
-            unit.scene,
+            unit.scene.model_copy(update={"observers": unit.observers}),
             unit.skill_id,
             unit.skill_params,
             first_episode=unit.first_episode,
             n_episodes=unit.n_episodes,
-            observers=observers,
         )
     except SkillFailed as exc:
         return exc.batch
@@ -169,34 +162,18 @@ def _warm(cache: SimCache, unit: EpisodeUnit) -> None:
         _log.debug("warm-up failed; the first unit builds instead", error=str(exc))
 
 
-def video_writer(scene: SimEnvironment, folder: Path, episodes: int, prefix: str) -> Callable[[EnvSpec], TickObserver]:
-    """A factory of the video writer filming ``scene``'s first camera at the env's rate.
+def episode_video_entry(folder: Path, *, episodes: int, prefix: str, option: str = "--save-video") -> ObserverConfig:
+    """The ``episode_video`` observer entry ``sim run --save-video`` (or a benchmark's ``--videos``) stands for.
 
-    Raises:
-        ROSConfigError: The scene renders no camera.
+    It films the episodes numbered below ``episodes``, each into ``<prefix>_episode<N>.mp4``.
     """
-    if not scene.cameras:
-        raise ROSConfigError(
-            "the scene renders no camera to film", field="cameras", hint="add one under cameras: in the scene"
-        )
-
-    def make(spec: EnvSpec) -> TickObserver:
-        from openral_sim.video import EpisodeVideoWriter  # noqa: PLC0415
-
-        return EpisodeVideoWriter(
-            folder,
-            camera=scene.cameras[0].name,
-            fps=scene.rate_hz or spec.control_hz,
-            max_episodes=episodes,
-            prefix=prefix,
-        )
-
-    return make
+    params = {"folder": str(folder.expanduser().absolute()), "episodes": episodes, "prefix": prefix}
+    return ObserverConfig.shorthand("episode_video", params, option=option)
 
 
-def with_videos(units: Sequence[EpisodeUnit], folder: Path, videos: int) -> list[EpisodeUnit]:
-    """The units, told to film the episodes below ``videos`` into ``folder``."""
-    return [replace(unit, video_dir=str(folder), videos=videos) for unit in units]
+def with_observers(units: Sequence[EpisodeUnit], *entries: ObserverConfig) -> list[EpisodeUnit]:
+    """The units, each also watched by ``entries`` (an ``episode_video`` entry films the episodes it asks for)."""
+    return [replace(unit, observers=[*unit.observers, *entries]) for unit in units]
 
 
 class Evaluator:

@@ -1,17 +1,23 @@
-"""``EpisodeVideoWriter``: MP4 videos of the first episodes of an evaluation, encoded off the tick thread.
+"""``EpisodeVideoWriter``: MP4 videos of the first episodes of a run, encoded off the tick thread.
 
 Each step tick's frame of one camera (the frame the skill saw) goes to the episode's video, one
-file per episode (``<scene>_episode<N>.mp4``), H.264 at the env's control rate.
+file per episode (``<prefix>_episode<N>.mp4``), H.264 at the loop's rate. It is the ``episode_video``
+observer: ``sim run --save-video`` stands for one entry, and a benchmark's ``--videos`` gives one to
+every unit of episodes (each films only the episodes below its ``episodes``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import structlog
+from pydantic import BaseModel, ConfigDict, Field
 
-from openral_core import ROSDependencyMissing, TickResult, WorldState
+from openral_core import ObserverContext, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
+from openral_core.config import validate_model
+from openral_core.config_files import resolve_user_path
 from openral_observability.queued_observer import QueuedObserver
 
 try:
@@ -21,16 +27,33 @@ except ImportError as exc:
 
 _log = structlog.get_logger(__name__)
 
+_PARAMS_FIELD = "observers[].params"
+
+
+class EpisodeVideoParams(BaseModel):
+    """Parameters of the ``episode_video`` observer."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    folder: str = Field(
+        min_length=1, description="Where the videos go (relative to the loop's folder); created at start."
+    )
+    episodes: int = Field(default=3, ge=1, description="How many episodes are filmed: those numbered below this.")
+    prefix: str | None = Field(
+        default=None, min_length=1, description="File name prefix (default: the robot, or the scene's environment)."
+    )
+    camera: str | None = Field(default=None, min_length=1, description="The camera filmed (default: the first).")
+
 
 class EpisodeVideoWriter(QueuedObserver):
     """Writes ``camera``'s frames of episodes ``0 .. max_episodes - 1`` into ``folder``.
 
     Args:
-        folder: Where the videos go (created).
+        folder: Where the videos go (created at :meth:`start`).
         camera: The scene camera to film.
-        fps: Frames per second of the video (the env's control rate).
+        fps: Frames per second of the video (the loop's rate).
         max_episodes: How many episodes are filmed (the first ones).
-        prefix: File name prefix (the scene's name).
+        prefix: File name prefix (a scene's name).
     """
 
     def __init__(self, folder: Path, *, camera: str, fps: float, max_episodes: int, prefix: str) -> None:
@@ -43,8 +66,42 @@ class EpisodeVideoWriter(QueuedObserver):
         self._container: Any = None
         self._stream: Any = None
         self._path: Path | None = None
-        folder.mkdir(parents=True, exist_ok=True)
         super().__init__(name="openral-sim-video", max_queue=1 << 16)
+
+    @classmethod
+    def from_config(cls, params: Mapping[str, Any], context: ObserverContext) -> EpisodeVideoWriter:
+        """Plugin constructor (observer ``episode_video``); ``params`` are :class:`EpisodeVideoParams`.
+
+        Opens nothing: the folder is created by :meth:`start`. Errors name ``context.option``
+        (``--save-video``) when the entry stands for one.
+
+        Raises:
+            ROSConfigError: A wrong parameter; the loop has no camera, or not the one named.
+        """
+        field = context.option or _PARAMS_FIELD
+        config = validate_model(EpisodeVideoParams, dict(params), field_prefix=field)
+        cameras = context.camera_ids()
+        if not cameras:
+            raise ROSConfigError(
+                "the scene renders no camera to film", field="cameras", hint="add one under cameras: in the scene"
+            )
+        camera = config.camera or cameras[0]
+        if camera not in cameras:
+            raise ROSConfigError(
+                f"no camera {camera!r} to film; the cameras are {cameras}",
+                field=context.option or f"{_PARAMS_FIELD}.camera",
+            )
+        return cls(
+            resolve_user_path(config.folder, context.base_dir, field=context.option or f"{_PARAMS_FIELD}.folder"),
+            camera=camera,
+            fps=context.rate_hz,
+            max_episodes=config.episodes,
+            prefix=config.prefix or context.robot_id,
+        )
+
+    def start(self) -> None:
+        """Create the folder (the runner calls this at activation, before the first tick). Idempotent."""
+        self.folder.mkdir(parents=True, exist_ok=True)
 
     def handle_episode_start(self, episode_idx: int, task: str) -> None:
         self._close_video()

@@ -3,8 +3,8 @@
 The test writes a package and its ``.dist-info`` (entry points) to a temporary folder, puts it on
 ``PYTHONPATH`` and runs ``openral validate`` and ``openral deploy`` on a deployment that uses only
 its plugins: a robot manifest, a camera backend, a skill, a safety client, a tick observer and an
-event detector run by the built-in ``perception`` observer. Nothing in this repository names any
-of them.
+event detector run by the built-in ``perception`` observer. The same tick observer watches a
+simulated scene's episodes under ``openral sim run``. Nothing in this repository names any of them.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from pydantic import BaseModel
 
 from openral_core import Action, FrameEncoding, ROSConfigError, SafetyEnvelope, SensorFrame
 from openral_core.skills import RSkillInfo
+from openral_observability.observer import TickObserver
 from openral_rskill.base import RSkillBase
 from openral_runner import LatestFrameSlot, SafetyClient, SlotReader
 
@@ -134,24 +135,27 @@ class AcmeShade(BaseModel):
     level: float
 
 
-class AcmeRecorder:
-    """Keeps what each tick sent and the grey level the skill saw; writes it on close."""
+class AcmeRecorder(TickObserver):
+    """Keeps what each tick sent and the grey level the skill saw; writes it, and the loop it watched, on close."""
 
-    def __init__(self, path):
+    def __init__(self, path, context):
         self.path = Path(path)
+        self.context = context
         self.rows = []
 
     @classmethod
-    def from_config(cls, params, *, robot, env, base_dir=None):
-        return cls(params["path"])
+    def from_config(cls, params, context):
+        return cls(context.base_dir / params["path"], context)
 
     def on_tick(self, tick, world):
         frames = world.image_frames if world is not None else None
-        grey = None if not frames else frames["eye"].as_array().mean()
+        grey = None if not frames else float(next(iter(frames.values())).as_array().mean())
         self.rows.append({"sent": tick.sent_action, "requested": tick.requested_action, "grey": grey})
 
     def close(self):
-        self.path.write_text(json.dumps(self.rows))
+        loop = {"robot": self.context.robot_id, "rate_hz": self.context.rate_hz,
+                "joints": list(self.context.joint_names), "cameras": [list(c) for c in self.context.cameras]}
+        self.path.write_text(json.dumps({"loop": loop, "rows": self.rows}))
 '''
 
 ENTRY_POINTS = """
@@ -236,7 +240,14 @@ def test_a_separate_distribution_plugs_in_every_door(site: Path, tmp_path: Path)
     result = json.loads(ran.stdout)
     assert result["n_ticks"] == 20
     assert result["withheld_actions"] == 0
-    rows = json.loads(record.read_text())
+    written = json.loads(record.read_text())
+    assert written["loop"] == {
+        "robot": "acme_arm",
+        "rate_hz": 50.0,
+        "joints": ["lift", "grip"],
+        "cameras": [["eye", 4, 2]],
+    }
+    rows = written["rows"]
     assert len(rows) == 20, "the observer saw every tick and was closed"
     assert all(r["requested"] == [0.4, 0.4] for r in rows), "the skill's actions"
     assert all(r["sent"] == [0.2, 0.2] for r in rows), "what the safety client let through"
@@ -244,6 +255,34 @@ def test_a_separate_distribution_plugs_in_every_door(site: Path, tmp_path: Path)
     seen = [json.loads(line) for line in shades.read_text().splitlines()]
     assert seen, "the perception observer ran the plugin's detector"
     assert all(s == {"sensor": "eye", "grey": 77.0, "size": [4, 2]} for s in seen), seen
+
+
+SCENE = """
+name: acme_reach
+env: mock
+env_id: reach
+task: reach the target
+max_steps: 15
+n_episodes: 2
+cameras: [{{name: top, width: 16, height: 8}}]
+observers:
+  - {{id: acme_recorder, params: {{path: {record}}}}}
+"""
+
+
+def test_the_third_party_observer_watches_a_simulated_scene_too(site: Path, tmp_path: Path) -> None:
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(SCENE.format(record="ticks.json"))  # relative: to the scene file's folder
+    ran = _openral(site, "sim", "run", "--config", str(scene), "--skill", "mock_reach_expert", "--json")
+    assert ran.returncode == 0, ran.stderr
+    report = json.loads(ran.stdout)
+    written = json.loads((tmp_path / "ticks.json").read_text())
+    loop = written["loop"]
+    assert (loop["robot"], loop["joints"], loop["cameras"]) == ("reach", ["x", "y"], [["top", 16, 8]])
+    assert loop["rate_hz"] > 0, "the env's control rate"
+    steps = [r for r in written["rows"] if r["requested"] is not None]
+    assert len(steps) == sum(e["steps"] for e in report["episodes"]), "the observer saw every step and was closed"
+    assert all(r["grey"] is not None for r in steps), "the rendered camera reached the observer"
 
 
 def test_a_plugins_detector_validates_its_own_params_and_an_unknown_kind_lists_the_plugins(

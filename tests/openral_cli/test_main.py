@@ -226,36 +226,24 @@ def test_duration_must_be_a_positive_finite_number(tmp_path: Path, value: str) -
     assert "--duration" in out.output
 
 
-def test_deploy_records_a_ros2_bag_with_one_tick_message_per_tick(tmp_path: Path) -> None:
-    pytest.importorskip("rosbags", reason="needs the 'dataset' extra")
-    from mcap.reader import make_reader  # noqa: PLC0415
-
+def test_deploy_records_a_ros2_bag_with_one_tick_message_per_tick(tmp_path: Path, check_bag) -> None:
     path = write(tmp_path, NULL_DEPLOYMENT)
     recording = tmp_path / "run.mcap"
     out = CliRunner().invoke(cli, ["deploy", "--config", str(path), "--max-ticks", "25", "--mcap", str(recording)])
     assert out.exit_code == 0, out.output
-    with recording.open("rb") as stream:
-        reader = make_reader(stream)
-        assert reader.get_header().profile == "ros2"
-        topics = [channel.topic for _schema, channel, _message in reader.iter_messages()]
-    assert topics.count("/openral/tick") == 25
-    assert topics.count("/joint_states") == 25
+    check_bag(recording, ticks=25)
 
 
-def test_deploy_foxglove_serves_the_run_and_attaches_the_deployment_to_a_bag(tmp_path: Path) -> None:
-    pytest.importorskip("foxglove", reason="needs the 'foxglove' extra")
-    pytest.importorskip("rosbags", reason="needs the 'dataset' extra")
-    from mcap.reader import make_reader  # noqa: PLC0415
-
+def test_deploy_foxglove_serves_the_run_and_attaches_the_deployment_to_a_bag(
+    tmp_path: Path, check_bag, check_foxglove_served
+) -> None:
     path = write(tmp_path, NULL_DEPLOYMENT)
     recording = tmp_path / "run.mcap"
     args = ["deploy", "--config", str(path), "--max-ticks", "10", "--foxglove", "0", "--mcap", str(recording)]
     out = CliRunner().invoke(cli, args)
     assert out.exit_code == 0, out.output
-    assert "foxglove: ws://127.0.0.1:" in out.output, "the flag's observer was built, started and printed"
-    with recording.open("rb") as stream:
-        attachments = [a.name for a in make_reader(stream).iter_attachments()]
-    assert attachments == [path.name]
+    check_foxglove_served(out.output)
+    check_bag(recording, ticks=10, attached=[path.name])
 
 
 def test_a_taken_dataset_folder_is_refused_naming_the_flag_and_left_as_it_was(tmp_path: Path) -> None:

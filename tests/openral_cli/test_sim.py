@@ -63,6 +63,32 @@ def test_sim_run_records_a_dataset_the_checker_accepts(tmp_path: Path) -> None:
     ]
 
 
+def test_sim_run_mcap_and_foxglove_produce_what_deploys_do(tmp_path: Path, check_bag, check_foxglove_served) -> None:
+    recording = tmp_path / "run.mcap"
+    args = ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "mock_reach_expert", "--n-episodes", "2",
+            "--foxglove", "0", "--mcap", str(recording), "--json"]  # fmt: skip
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)  # the address goes to stderr: stdout stays one document
+    check_foxglove_served(result.stderr)
+    # One tick resets each episode (it has no world state yet), then one tick per step.
+    steps = sum(e["steps"] for e in report["episodes"])
+    check_bag(recording, ticks=steps + len(report["episodes"]), worlds=steps, attached=[MOCK_SCENE.name])
+
+
+def test_sim_run_refuses_a_taken_dataset_folder_naming_the_flag_and_leaves_it_as_it_was(tmp_path: Path) -> None:
+    taken = tmp_path / "taken"
+    (taken / "meta").mkdir(parents=True)
+    (taken / "meta" / "notes.txt").write_text("mine")
+    args = ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "zero", "--n-episodes", "1",
+            "--dataset-out", str(taken)]  # fmt: skip
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2, result.output
+    assert "--dataset-out" in result.output
+    assert (taken / "meta" / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in taken.iterdir()) == ["meta"]
+
+
 @pytest.mark.parametrize(
     ("text", "field"),
     [

@@ -22,12 +22,12 @@ from openral_cli.console import (
     ConsoleAddress,
     ConsoleAddressType,
     attach_console,
-    console_factories,
     with_console,
 )
 from openral_cli.main import cli
 from openral_console.observer import ConsoleObserver
-from openral_core import RobotEnvironment
+from openral_core import ObserverContext, RobotEnvironment, SimEnvironment
+from openral_runner.composition import build_observers
 from openral_runner.thumbnails import ThumbnailPublisher
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -80,13 +80,19 @@ def test_the_option_adds_a_console_and_thumbnails_for_its_cameras() -> None:
     assert console.option == "--console"
 
 
-def test_sim_run_gets_thumbnail_and_console_makers() -> None:
-    assert console_factories(None) == []
-    made = [make(None) for make in console_factories(ConsoleAddress("127.0.0.1", 0))]
-    assert isinstance(made[0], ThumbnailPublisher)
-    assert isinstance(made[1], ConsoleObserver)
-    for observer in made:
-        observer.close()
+def test_a_scene_gets_the_same_entries_built_into_thumbnails_and_a_console_naming_the_option() -> None:
+    scene = SimEnvironment.from_yaml(MOCK_SCENE)
+    assert with_console(scene, None) is scene
+    added = with_console(scene, ConsoleAddress("127.0.0.1", 0))
+    assert [o.id for o in added.observers][-2:] == ["thumbnails", "console"]
+    made = build_observers(added.observers, ObserverContext(robot_id="mock", rate_hz=30.0))
+    try:
+        assert isinstance(made[-2], ThumbnailPublisher)
+        assert isinstance(made[-1], ConsoleObserver)
+        assert made[-1]._option == "--console"
+    finally:
+        for observer in made:
+            observer.close()
 
 
 def test_attach_console_gives_every_console_the_status_and_buttons() -> None:

@@ -17,10 +17,13 @@ import pytest
 from openral_console.feed import unpack_thumbnail
 from openral_console.observer import ConsoleObserver
 from openral_console.params import ConsoleParams
-from openral_core import JointState, ROSConfigError, TickResult, WorldState
+from openral_core import JointState, ObserverContext, ROSConfigError, TickResult, WorldState
 from openral_observability.observer import Thumbnail
 
 _TIMEOUT = aiohttp.ClientTimeout(total=10)
+CONTEXT = ObserverContext(robot_id="so101_follower", rate_hz=30.0)
+CONSOLE_OPTION = ObserverContext(robot_id="so101_follower", rate_hz=30.0, option="--console")
+"""The context of an entry ``--console`` stands for."""
 
 
 @pytest.fixture
@@ -77,7 +80,7 @@ async def next_of(ws: aiohttp.ClientWebSocketResponse, kind: str, where: Callabl
 
 def test_building_opens_nothing_and_start_binds_a_free_port_and_prints_the_url() -> None:
     out = io.StringIO()
-    observer = ConsoleObserver.from_config({"port": 0})
+    observer = ConsoleObserver.from_config({"port": 0}, CONTEXT)
     assert observer.port is None
     assert observer.url is None
     observer._announce = out
@@ -95,7 +98,7 @@ def test_building_opens_nothing_and_start_binds_a_free_port_and_prints_the_url()
 
 def test_a_wrong_parameter_is_named_with_the_allowed_keys() -> None:
     with pytest.raises(ROSConfigError, match="--console") as error:
-        ConsoleObserver.from_config({"prot": 80}, option="--console")
+        ConsoleObserver.from_config({"prot": 80}, CONSOLE_OPTION)
     assert "port" in str(error.value)
 
 
@@ -371,7 +374,7 @@ def test_close_tells_open_pages_and_releases_the_port(console) -> None:
 def test_a_port_in_use_is_a_configuration_error_naming_the_option() -> None:
     with socket.create_server(("127.0.0.1", 0)) as taken:
         port = taken.getsockname()[1]
-        observer = ConsoleObserver.from_config({"port": port}, option="--console")
+        observer = ConsoleObserver.from_config({"port": port}, CONSOLE_OPTION)
         with pytest.raises(ROSConfigError, match=r"--console.*choose another port"):
             observer.start()
         observer.close()

@@ -13,7 +13,14 @@ import av
 import pyarrow.parquet as pq
 import pytest
 
-from openral_core import FrameEncoding, RobotEnvironment, ROSConfigError, SensorFrame, SensorReaderConfig
+from openral_core import (
+    FrameEncoding,
+    ObserverContext,
+    RobotEnvironment,
+    ROSConfigError,
+    SensorFrame,
+    SensorReaderConfig,
+)
 from openral_dataset import layout, schema
 from openral_dataset.check import check_dataset
 from openral_dataset.recorder import RolloutRecorder
@@ -286,9 +293,9 @@ def _deployment() -> RobotEnvironment:
 
 def test_from_config_takes_episode_every_s(tmp_path: Path) -> None:
     recorder = RolloutRecorder.from_config(
-        {"root": "ds", "episode_every_s": 2.5}, robot=load_robot_manifest("so101_follower"), env=_deployment(),
-        base_dir=tmp_path,
-    )  # fmt: skip
+        {"root": "ds", "episode_every_s": 2.5},
+        ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower"), tmp_path),
+    )
     try:
         assert recorder.part_rows == 75
         assert recorder.highlight is None
@@ -300,9 +307,9 @@ def test_from_config_takes_episode_every_s(tmp_path: Path) -> None:
 def test_a_bad_episode_every_s_names_the_field(tmp_path: Path, value: object) -> None:
     with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.episode_every_s"):
         RolloutRecorder.from_config(
-            {"root": "ds", "episode_every_s": value}, robot=load_robot_manifest("so101_follower"),
-            env=_deployment(), base_dir=tmp_path,
-        )  # fmt: skip
+            {"root": "ds", "episode_every_s": value},
+            ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower"), tmp_path),
+        )
     assert not (tmp_path / "ds").exists()
 
 

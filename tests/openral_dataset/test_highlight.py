@@ -15,6 +15,7 @@ from structlog.testing import capture_logs
 from openral_core import (
     FrameEncoding,
     JointState,
+    ObserverContext,
     RobotEnvironment,
     ROSConfigError,
     ROSRuntimeError,
@@ -282,9 +283,9 @@ def _deployment() -> RobotEnvironment:
 
 def test_from_config_takes_highlight_s(tmp_path: Path) -> None:
     recorder = RolloutRecorder.from_config(
-        {"root": "ds", "highlight_s": 30}, robot=load_robot_manifest("so101_follower"), env=_deployment(),
-        base_dir=tmp_path,
-    )  # fmt: skip
+        {"root": "ds", "highlight_s": 30},
+        ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower"), tmp_path),
+    )
     try:
         assert recorder.highlight is not None
         assert recorder.highlight.capacity_rows == 900
@@ -298,17 +299,17 @@ def test_from_config_takes_highlight_s(tmp_path: Path) -> None:
 def test_a_bad_highlight_s_names_the_field(tmp_path: Path, value: object) -> None:
     with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.highlight_s"):
         RolloutRecorder.from_config(
-            {"root": "ds", "highlight_s": value}, robot=load_robot_manifest("so101_follower"), env=_deployment(),
-            base_dir=tmp_path,
-        )  # fmt: skip
+            {"root": "ds", "highlight_s": value},
+            ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower"), tmp_path),
+        )
 
 
 def test_highlights_and_continuous_recording_together_are_refused_naming_both(tmp_path: Path) -> None:
     with pytest.raises(ROSConfigError, match="highlight_s and episode_every_s"):
         RolloutRecorder.from_config(
-            {"root": "ds", "highlight_s": 30, "episode_every_s": 60}, robot=load_robot_manifest("so101_follower"),
-            env=_deployment(), base_dir=tmp_path,
-        )  # fmt: skip
+            {"root": "ds", "highlight_s": 30, "episode_every_s": 60},
+            ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower"), tmp_path),
+        )
     sink = LeRobotDatasetSink(tmp_path / "ds", fps=FPS, robot_type="arm", joint_names=JOINTS, defer_open=True)
     with pytest.raises(ROSConfigError, match="highlight_s and episode_every_s"):
         RolloutRecorder(sink, joint_names=JOINTS, highlight_s=30, episode_every_s=60)

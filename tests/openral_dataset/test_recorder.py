@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import av
@@ -12,8 +13,10 @@ import pytest
 from structlog.testing import capture_logs
 
 from openral_core import (
+    CameraSize,
     FrameEncoding,
     JointState,
+    ObserverContext,
     RobotEnvironment,
     ROSConfigError,
     ROSRuntimeError,
@@ -26,7 +29,7 @@ from openral_dataset import layout, schema
 from openral_dataset.check import check_dataset
 from openral_dataset.recorder import RolloutRecorder
 from openral_dataset.testing import numbered_pixels, read_number
-from openral_dataset.video import StreamingVideoEncoder
+from openral_dataset.video import OverflowPolicy, StreamingVideoEncoder
 from openral_dataset.writer import LeRobotDatasetSink, read_tasks
 from openral_hal.manifests import load_robot_manifest
 from openral_hal.testing import RecordingHAL
@@ -270,7 +273,7 @@ def _deployment(rate_hz: float = 30.0) -> RobotEnvironment:
 def test_from_config_builds_the_cli_recording_and_opens_nothing_until_start(tmp_path: Path) -> None:
     robot = load_robot_manifest("so101_follower")
     recorder = RolloutRecorder.from_config(
-        {"root": "out/ds", "vcodec": "h264"}, robot=robot, env=_deployment(), base_dir=tmp_path
+        {"root": "out/ds", "vcodec": "h264"}, ObserverContext.of_deployment(_deployment(), robot, tmp_path)
     )
     root = tmp_path / "out" / "ds"
     try:
@@ -291,7 +294,8 @@ def test_from_config_builds_the_cli_recording_and_opens_nothing_until_start(tmp_
 
 def test_a_recorder_never_started_touches_no_file_when_closed(tmp_path: Path) -> None:
     recorder = RolloutRecorder.from_config(
-        {"root": str(tmp_path / "ds")}, robot=load_robot_manifest("so101_follower"), env=_deployment()
+        {"root": str(tmp_path / "ds")},
+        ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower")),
     )
     recorder.close()
     assert not (tmp_path / "ds").exists()
@@ -306,7 +310,7 @@ def test_start_refuses_an_existing_dataset_naming_the_parameter(tmp_path: Path) 
     runner.episode_end(success=True)
     runner.deactivate()
     recorder = RolloutRecorder.from_config(
-        {"root": "ds"}, robot=load_robot_manifest("so101_follower"), env=_deployment(), base_dir=tmp_path
+        {"root": "ds"}, ObserverContext.of_deployment(_deployment(), load_robot_manifest("so101_follower"), tmp_path)
     )
     try:
         with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.root: .*already holds") as refused:
@@ -330,9 +334,42 @@ def test_start_refuses_an_existing_dataset_naming_the_parameter(tmp_path: Path) 
 def test_a_bad_parameter_names_the_field(tmp_path: Path, params: dict[str, object], rate_hz: float, named: str) -> None:
     with pytest.raises(ROSConfigError, match=named):
         RolloutRecorder.from_config(
-            params, robot=load_robot_manifest("so101_follower"), env=_deployment(rate_hz), base_dir=tmp_path
+            params, ObserverContext.of_deployment(_deployment(rate_hz), load_robot_manifest("so101_follower"), tmp_path)
         )
     assert not (tmp_path / "ds").exists()
+
+
+def test_a_free_running_loop_records_its_own_names_waits_for_its_encoders_and_errors_name_the_option(
+    tmp_path: Path,
+) -> None:
+    simulated = ObserverContext(
+        robot_id="reach",
+        rate_hz=10.0,
+        joint_names=("x", "y"),
+        action_names=("dx", "dy"),
+        environment_state_names=("target_x", "target_y"),
+        cameras=(CameraSize("top", 64, 48),),
+        free_running=True,
+        option="--dataset-out",
+    )
+    recorder = RolloutRecorder.from_config({"root": str(tmp_path / "ds")}, simulated)
+    try:
+        sink = recorder.sink
+        assert (sink.robot_type, sink.fps, sink.overflow) == ("reach", 10, OverflowPolicy.WAIT)
+        assert (sink.joint_names, sink.action_names) == (["x", "y"], ["dx", "dy"])
+        assert sink.environment_state_names == ["target_x", "target_y"]
+        assert sink.cameras == [schema.CameraSpec("top", 64, 48)]
+    finally:
+        recorder.close()
+    with pytest.raises(ROSConfigError, match=r"--dataset-out: .*whole frames per second; the tick rate is 12.5 Hz"):
+        RolloutRecorder.from_config({"root": str(tmp_path / "ds")}, replace(simulated, rate_hz=12.5))
+    on_a_robot = RolloutRecorder.from_config(
+        {"root": str(tmp_path / "robot")}, replace(simulated, free_running=False, option=None)
+    )
+    try:
+        assert on_a_robot.sink.overflow is OverflowPolicy.REPEAT, "a robot does not wait: a late frame is repeated"
+    finally:
+        on_a_robot.close()
 
 
 def test_the_tick_columns_mirror_tick_result_fields_under_their_published_names() -> None:

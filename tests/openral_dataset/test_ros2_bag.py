@@ -14,9 +14,8 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from PIL import Image
 
-from openral_core import ROSConfigError, SensorReaderConfig, TickResult
+from openral_core import ObserverContext, ROSConfigError, SensorReaderConfig, TickResult
 from openral_dataset.ros2_bag import NOT_IN_TICK_RECORD, Ros2BagWriter
-from openral_hal.manifests import load_robot_manifest
 from openral_hal.testing import RecordingHAL
 from openral_rskill.testing import ScriptedSkill
 from openral_runner.hardware import HardwareRunner
@@ -179,9 +178,7 @@ def test_an_attachment_that_is_not_a_small_regular_file_is_refused_before_the_ba
     with pytest.raises(ROSConfigError) as refused:
         Ros2BagWriter.from_config(
             {"path": "run.mcap", "attach": attach},
-            robot=load_robot_manifest("so101_follower"),
-            env=None,
-            base_dir=tmp_path,
+            ObserverContext(robot_id="so101_follower", rate_hz=30.0, joint_names=tuple(JOINTS), base_dir=tmp_path),
         )
     assert refused.value.field == "observers[].params.attach"
     assert not path.exists()

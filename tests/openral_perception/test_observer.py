@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from openral_core import ROSConfigError, SensorFrame, TickResult, WorldState
+from openral_core import ObserverContext, ROSConfigError, SensorFrame, TickResult, WorldState
 from openral_core.config import validate_model
 from openral_observability.observer import TickObserver
 from openral_perception.observer import PerceptionObserver
@@ -19,8 +19,7 @@ pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
 ROOT = Path(__file__).resolve().parents[2]
 
 
-class Robot:
-    robot_id = "so101_follower"
+ROBOT_ID = "so101_follower"
 
 
 def _manifest(tmp_path: Path) -> Path:
@@ -40,9 +39,7 @@ def test_a_detector_manifest_runs_on_the_frames_of_each_tick_in_their_colour_ord
             "detectors": [{"kind": "motion"}, {"kind": "objects", "params": {"manifest": manifest.name}}],
             "rate_hz": 100,
         },
-        robot=Robot(),
-        env=None,
-        base_dir=tmp_path,
+        ObserverContext(robot_id=ROBOT_ID, rate_hz=30.0, base_dir=tmp_path),
     )
     sink = RecordingEventSink()
     observer.publisher.sinks.append(sink)
@@ -71,9 +68,7 @@ def test_the_earlier_shape_builds_the_same_detectors(tmp_path):
     manifest = _manifest(tmp_path)
     shorthand = PerceptionObserver.from_config(
         {"motion": {"threshold": 20}, "scene_change": {}, "detector_manifest": manifest.name},
-        robot=Robot(),
-        env=None,
-        base_dir=tmp_path,
+        ObserverContext(robot_id=ROBOT_ID, rate_hz=30.0, base_dir=tmp_path),
     )
     listed = PerceptionObserver.from_config(
         {
@@ -83,8 +78,7 @@ def test_the_earlier_shape_builds_the_same_detectors(tmp_path):
                 {"kind": "objects", "params": {"manifest": str(manifest)}},
             ]
         },
-        robot=Robot(),
-        env=None,
+        ObserverContext(robot_id=ROBOT_ID, rate_hz=30.0),
     )
     for observer in (shorthand, listed):
         assert [d.kind for d in observer.publisher.detectors] == ["motion", "scene_change", "objects"]
@@ -94,7 +88,7 @@ def test_the_earlier_shape_builds_the_same_detectors(tmp_path):
 
 def test_only_the_cameras_asked_for_and_frames_with_pixels_are_handed_over():
     observer = PerceptionObserver.from_config(
-        {"detectors": [{"kind": "motion"}], "sensors": ["front"]}, robot=Robot(), env=None
+        {"detectors": [{"kind": "motion"}], "sensors": ["front"]}, ObserverContext(robot_id=ROBOT_ID, rate_hz=30.0)
     )
     pixels = np.zeros((4, 4, 3), dtype=np.uint8)
     frames = {
@@ -112,7 +106,7 @@ def test_only_the_cameras_asked_for_and_frames_with_pixels_are_handed_over():
 
 def test_no_detector_is_a_configuration_error_naming_the_kinds():
     with pytest.raises(ROSConfigError, match="no detector") as info:
-        PerceptionObserver.from_config({"rate_hz": 5}, robot=Robot(), env=None)
+        PerceptionObserver.from_config({"rate_hz": 5}, ObserverContext(robot_id=ROBOT_ID, rate_hz=30.0))
     assert "motion" in str(info.value)
     assert "objects" in str(info.value)
 
@@ -136,11 +130,11 @@ def test_the_event_session_listens_on_loopback_unless_the_file_says_otherwise(ze
 def test_a_model_input_size_out_of_range_is_a_config_error(size: list[int]) -> None:
     with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.objects\.input_size"):
         PerceptionObserver.from_config(
-            {"objects": {"model": "m.onnx", "labels": ["cube"], "input_size": size}}, robot=Robot(), env=None
+            {"objects": {"model": "m.onnx", "labels": ["cube"], "input_size": size}},
+            ObserverContext(robot_id=ROBOT_ID, rate_hz=30.0),
         )
     with pytest.raises(ROSConfigError, match=r"observers\[\]\.params\.detectors\[0\]\.params\.input_size"):
         PerceptionObserver.from_config(
             {"detectors": [{"kind": "objects", "params": {"model": "m.onnx", "labels": ["c"], "input_size": size}}]},
-            robot=Robot(),
-            env=None,
+            ObserverContext(robot_id=ROBOT_ID, rate_hz=30.0),
         )

@@ -13,6 +13,7 @@ from openral_core import (
     Action,
     DeadlineOverrunPolicy,
     JointState,
+    ObserverContext,
     ROSConfigError,
     ROSEStopRequested,
     ROSHardwareError,
@@ -35,6 +36,7 @@ from openral_runner.thumbnails import ThumbnailPublisher
 from openral_world_state import WorldStateAggregator
 
 JOINTS = ["j0", "j1", "j2"]
+CONTEXT = ObserverContext(robot_id="test_arm", rate_hz=30.0)
 RATE = 30.0
 PERIOD = 1.0 / RATE
 
@@ -821,17 +823,35 @@ def test_a_reader_with_only_the_seed_protocol_runs_and_syncs() -> None:
     assert abs(frames["left"].stamp_ns - frames["right"].stamp_ns) <= 20e6
 
 
-def test_thumbnails_follow_the_seed_keyword() -> None:
+def _thumbnails(runner: HardwareRunner) -> list[ThumbnailPublisher]:
+    return [o for o in runner.observers if isinstance(o, ThumbnailPublisher)]
+
+
+def test_thumbnails_follow_the_seed_keyword_as_one_more_observer() -> None:
     clock = FakeClock()
     cam = ScriptedReader("front", clock)
     configs = [SensorReaderConfig(sensor_id="front")]
-    runner, _, _ = build(clock, readers=[cam], sensor_configs=configs, thumbnail_hz=25.0)
-    assert runner.thumbnails is not None
-    assert runner.thumbnails.rate_hz == 25.0
-    assert build(clock, readers=[cam], sensor_configs=configs, thumbnail_hz=0.0)[0].thumbnails is None
-    assert build(clock, thumbnail_hz=25.0)[0].thumbnails is None, "no camera, no thumbnails"
+    watching = EpisodeLog()
+    runner, _, _ = build(clock, readers=[cam], sensor_configs=configs, thumbnail_hz=25.0, observers=[watching])
+    assert runner.observers[0] is watching, "the shorthand's publisher comes after the observers given"
+    assert [t.rate_hz for t in _thumbnails(runner)] == [25.0]
+    assert _thumbnails(build(clock, readers=[cam], sensor_configs=configs, thumbnail_hz=0.0)[0]) == []
+    assert _thumbnails(build(clock, thumbnail_hz=25.0)[0]) == [], "no camera, no thumbnails"
     with pytest.raises(ROSConfigError, match="thumbnail_hz"):
         build(clock, readers=[cam], sensor_configs=configs, thumbnail_hz=float("nan"))
+
+
+def test_the_seed_default_is_25_hz_without_observers_and_none_with_them() -> None:
+    clock = FakeClock()
+    configs = [SensorReaderConfig(sensor_id="front")]
+    as_the_spec_builds_it = build(
+        clock, readers=[ScriptedReader("front", clock)], sensor_configs=configs, thumbnail_hz=None
+    )
+    assert [t.rate_hz for t in _thumbnails(as_the_spec_builds_it[0])] == [25.0]
+    composed = build(
+        clock, readers=[ScriptedReader("front", clock)], sensor_configs=configs, thumbnail_hz=None, observers=[]
+    )
+    assert _thumbnails(composed[0]) == [], "a runner given its observers has exactly those"
 
 
 def test_a_skill_that_finishes_its_task_ends_the_run_cleanly() -> None:
@@ -869,10 +889,9 @@ class EpisodeLog(TickObserver):
 def test_the_recorder_hears_episodes_first_and_ticks_carry_their_episode_and_step() -> None:
     clock = FakeClock()
     recorder = EpisodeLog()
-    runner, _, _ = build(clock, recorder=recorder)
     other = EpisodeLog()
-    runner.observers.append(other)
-    assert runner.observers[0] is recorder
+    runner, _, _ = build(clock, recorder=recorder, observers=[other])
+    assert runner.observers == [recorder, other], "the recorder shorthand is the first observer"
     runner.activate()
     runner.run(1)
     runner.episode_start("pick")
@@ -894,8 +913,6 @@ def test_the_recorder_hears_episodes_first_and_ticks_carry_their_episode_and_ste
     ]
     assert other.events == recorder.events
     assert recorder.closed == 1
-    with pytest.raises(ROSRuntimeError, match="already has a recorder"):
-        runner.attach_recorder(EpisodeLog())
 
 
 def test_an_observer_failing_at_an_episode_boundary_is_detached_and_the_run_goes_on() -> None:
@@ -937,10 +954,10 @@ class ThumbnailViewer(TickObserver):
 def test_a_thumbnails_observer_entry_feeds_every_viewer_without_runner_special_cases() -> None:
     clock = FakeClock()
     cam = ScriptedReader("front", clock, width=8, height=6)
-    publisher = ThumbnailPublisher.from_config({"rate_hz": 1000.0, "quality": 50})
+    publisher = ThumbnailPublisher.from_config({"rate_hz": 1000.0, "quality": 50}, CONTEXT)
     viewer = ThumbnailViewer()
     runner, _, _ = build(clock, readers=[cam], sensor_configs=[SensorReaderConfig(sensor_id="front")])
-    assert runner.thumbnails is None
+    assert _thumbnails(runner) == []
     runner.observers.extend([publisher, viewer])
     runner.activate()
     try:
@@ -950,7 +967,7 @@ def test_a_thumbnails_observer_entry_feeds_every_viewer_without_runner_special_c
         runner.deactivate()
     assert viewer.thumbs[0].sensor_id == "front"  # type: ignore[attr-defined]
     with pytest.raises(ROSConfigError, match="rate"):
-        ThumbnailPublisher.from_config({"rate": 5})
+        ThumbnailPublisher.from_config({"rate": 5}, CONTEXT)
 
 
 class RefusingObserver(TickObserver):

@@ -81,6 +81,24 @@ def test_a_simulator_missing_here_is_left_to_the_cluster_but_the_skill_name_is_s
     assert unknown.value.field == "runs[0].skill"
 
 
+def test_checking_builds_the_scenes_observers_without_opening_anything(tmp_path) -> None:
+    pytest.importorskip("pyarrow", reason="needs the 'dataset' extra")
+    watched = _scene(
+        cameras=[{"name": "top", "width": 16, "height": 16}],
+        observers=[
+            {"id": "lerobot_dataset", "params": {"root": str(tmp_path / "ds")}},
+            {"id": "episode_video", "params": {"folder": str(tmp_path / "videos")}},
+        ],
+    )
+    assert check_evaluation(watched, "zero") is not None
+    assert list(tmp_path.iterdir()) == [], "built and closed: no dataset folder, no video folder"
+    with pytest.raises(ROSConfigError, match="did you mean 'episode_video'") as unknown:
+        check_evaluation(_scene(observers=[{"id": "episode_vide"}]), "zero")
+    assert unknown.value.field == "observers[0].id"
+    with pytest.raises(ROSConfigError, match="renders no camera"):
+        check_evaluation(_scene(observers=[{"id": "episode_video", "params": {"folder": str(tmp_path)}}]), "zero")
+
+
 def test_a_cache_runs_slices_on_one_environment_with_the_outcomes_of_a_fresh_run() -> None:
     scene = _scene(n_episodes=6, max_steps=25, seed=7)
     fresh = run_episodes(scene, "random")

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from openral_core import SimEnvironment
+from openral_core import ObserverConfig, SimCamera, SimEnvironment
 from openral_sim.build import SkillFailed, process_name
 from openral_sim.evaluation import (
     EpisodeUnit,
@@ -23,12 +23,19 @@ from openral_sim.evaluation import (
     throughput,
     usable_cpus,
     wilson_interval,
+    with_observers,
     worker_processes,
 )
 
 SCENE = SimEnvironment(
     name="reach", env="mock", task="reach", success_key="is_success", max_steps=25, n_episodes=8, seed=3
 )
+FILMED = SCENE.model_copy(update={"cameras": [SimCamera(name="top", width=32, height=32)]})
+"""The scene with a camera to film."""
+
+
+def _video_entry(folder: str, episodes: int) -> ObserverConfig:
+    return ObserverConfig(id="episode_video", params={"folder": folder, "episodes": episodes, "prefix": "reach"})
 
 
 def test_wilson_interval_matches_the_formula_and_stays_inside_zero_one() -> None:
@@ -131,6 +138,18 @@ def test_two_worker_processes_give_the_outcomes_of_one_process() -> None:
     assert [e.outcome() for e in workers] == [e.outcome() for e in here]
 
 
+@pytest.mark.slow
+def test_two_worker_processes_film_through_an_episode_video_entry_only_the_episodes_it_asks_for(tmp_path) -> None:
+    here = run_units(split_episodes(FILMED, "random", {}, 8, 1)).episodes
+    units = with_observers(split_episodes(FILMED, "random", {}, 8, 4), _video_entry(str(tmp_path), 3))
+    assert all(unit.observers == [_video_entry(str(tmp_path), 3)] for unit in units), "plain data for the workers"
+    filmed = run_units(units, workers=2).episodes
+    assert [e.outcome() for e in filmed] == [e.outcome() for e in here], "filming changes no outcome"
+    videos = sorted(tmp_path.iterdir())
+    assert [v.name for v in videos] == ["reach_episode0.mp4", "reach_episode1.mp4", "reach_episode2.mp4"]
+    assert all(v.stat().st_size > 0 for v in videos)
+
+
 def test_a_skill_failing_every_step_stops_the_units_with_its_error_here() -> None:
     # The SO-101 expert needs privileged values the mock does not expose.
     with pytest.raises(SkillFailed, match="grasp_pos") as caught:
@@ -155,13 +174,14 @@ def test_a_skill_failing_every_step_in_worker_processes_is_an_error_with_every_u
 
 RAY_RUN = """
 import json, ray
-from openral_core import SimEnvironment
+from openral_core import ObserverConfig, SimEnvironment
 from openral_sim.build import SkillFailed
-from openral_sim.evaluation import run_units, split_episodes
+from openral_sim.evaluation import run_units, split_episodes, with_observers
 scene = SimEnvironment.model_validate_json({scene!r})
+video = ObserverConfig(id="episode_video", params={{"folder": {videos!r}, "episodes": 2, "prefix": "reach"}})
 ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
 try:
-    batch = run_units(split_episodes(scene, "random", {{}}, 8, 4), ray_address="local")
+    batch = run_units(with_observers(split_episodes(scene, "random", {{}}, 8, 4), video), ray_address="local")
     builds = batch.env_builds
     try:
         run_units(split_episodes(scene, "so101_pick_expert", {{}}, 8, 4), ray_address="local")
@@ -175,16 +195,17 @@ print(json.dumps([[e.outcome() for e in batch.episodes], failure, builds]))
 
 
 @pytest.mark.slow
-def test_ray_gives_the_outcomes_of_one_process_and_reports_a_failing_skill() -> None:
+def test_ray_gives_the_outcomes_of_one_process_films_and_reports_a_failing_skill(tmp_path) -> None:
     if importlib.util.find_spec("ray") is None:  # not imported here: Ray installs process-wide handlers
         pytest.skip("needs the 'ray' extra")
-    here = run_units(split_episodes(SCENE, "random", {}, 8, 1)).episodes
+    here = run_units(split_episodes(FILMED, "random", {}, 8, 1)).episodes
     # Ray starts its own processes and signal handlers: it runs in a child, not in the test process.
-    code = RAY_RUN.format(scene=SCENE.model_dump_json())
+    code = RAY_RUN.format(scene=FILMED.model_dump_json(), videos=str(tmp_path))
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     on_ray, failure, builds = json.loads(proc.stdout.strip().splitlines()[-1])
     assert on_ray == [e.outcome() for e in here]
+    assert sorted(v.name for v in tmp_path.iterdir()) == ["reach_episode0.mp4", "reach_episode1.mp4"]
     assert builds
     assert set(builds.values()) == {1}  # a Ray worker keeps its environment for its next tasks
     # A skill failing on every step is an error on Ray too, with each unit's episode ended by the faults.

@@ -13,7 +13,7 @@ from openral_core import SimEnvironment
 pytest.importorskip("onnx", reason="needs the 'policy' extra")
 ort = pytest.importorskip("onnxruntime", reason="needs the 'policy' extra")
 
-from openral_cli.recording import build_sim_recorder  # noqa: E402
+from openral_cli.recording import dataset_entry, with_observers  # noqa: E402
 from openral_sim.build import run_episodes  # noqa: E402
 from openral_sim.train_mlp import export_onnx, load_samples, main, train  # noqa: E402
 
@@ -25,11 +25,8 @@ SCENE = SimEnvironment(
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("ds") / "reach"
-    run_episodes(
-        SCENE,
-        "mock_reach_expert",
-        recorder=lambda spec: build_sim_recorder(SCENE, spec, root, resume=False, vcodec="h264"),
-    )
+    recorded = with_observers(SCENE, dataset_entry(root, resume=False, vcodec="h264"))
+    run_episodes(recorded, "mock_reach_expert")
     return root
 
 

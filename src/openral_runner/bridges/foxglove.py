@@ -32,13 +32,12 @@ import math
 import time
 from collections.abc import Callable, Mapping
 from contextlib import ExitStack
-from pathlib import Path
 from typing import Any, Final
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from openral_core import JointState, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
+from openral_core import JointState, ObserverContext, ROSConfigError, ROSDependencyMissing, TickResult, WorldState
 from openral_core.config import validate_model
 from openral_observability.latest_observer import LatestPerKeyWorker
 from openral_observability.observer import Thumbnail
@@ -239,24 +238,16 @@ class FoxgloveSink(QueuedObserver):
             ) from exc
 
     @classmethod
-    def from_config(
-        cls,
-        params: Mapping[str, Any],
-        *,
-        robot: Any,
-        env: Any,
-        base_dir: Path | None = None,
-        option: str | None = None,
-    ) -> FoxgloveSink:
+    def from_config(cls, params: Mapping[str, Any], context: ObserverContext) -> FoxgloveSink:
         """Plugin constructor (observer ``foxglove``); ``params`` are validated as :class:`FoxgloveParams`.
 
-        Images come from the ``thumbnails`` observer. ``option`` is the command-line option the entry
-        stands for (``--foxglove``): errors name it.
+        Images come from the ``thumbnails`` observer. Errors name ``context.option`` (``--foxglove``)
+        when the entry stands for one.
 
         Raises:
             ROSConfigError: A wrong parameter (named with the allowed keys).
         """
-        config = validate_model(FoxgloveParams, dict(params), field_prefix=option or "observers[].params")
+        config = validate_model(FoxgloveParams, dict(params), field_prefix=context.option or "observers[].params")
         return cls(port=config.port, host=config.host)
 
     @property

@@ -118,8 +118,11 @@ def run_suite(
                 server = serve_row(row.scene, row.run, evaluator=evaluator, max_batch=serve.max_batch, gpus=serve.gpus)
                 skill_id, params = server.skill_id, server.params
             units = evaluator.schedule(row.scene, skill_id, params, row.scene.n_episodes)
-            if video_dir is not None:
-                units = evaluation.with_videos(units, video_dir, videos)
+            if video_dir is not None and row.scene.cameras and videos:
+                entry = evaluation.episode_video_entry(
+                    video_dir, episodes=videos, prefix=f"{row.scene.name}_{skill_id}", option="--videos"
+                )
+                units = evaluation.with_observers(units, entry)
             batch = evaluator.run(units)
         except SkillFailed as exc:
             outcome.error = exc

@@ -29,7 +29,7 @@ from openral_rskill.testing import ScriptedSkill
 from openral_runner.frame_slot import frame_from_array
 from openral_runner.hardware import HardwareRunner
 from openral_runner.testing import FakeClock, ScriptedReader
-from openral_runner.thumbnails import encode_thumbnail
+from openral_runner.thumbnails import ThumbnailPublisher, encode_thumbnail
 from openral_world_state import WorldStateAggregator
 
 EXTRA = "needs the 'foxglove' extra (foxglove-sdk, mcap): uv sync --extra foxglove"
@@ -375,14 +375,14 @@ def test_one_jpeg_encode_serves_the_thumbnail_span_and_the_foxglove_view(tmp_pat
         thumbnail_hz=1000.0,  # every frame is due: the schedule runs on the real clock
     )
     spans: list[object] = []
-    assert runner.thumbnails is not None
-    runner.thumbnails._sinks[0] = spans.append  # the dashboard span sink, observed
+    (thumbnails,) = [o for o in runner.observers if isinstance(o, ThumbnailPublisher)]
+    thumbnails._sinks[0] = spans.append  # the dashboard span sink, observed
     sink = sink_cls(mcap_path=tmp_path / "view.mcap")
     runner.observers.append(sink)
     runner.activate()
     runner.run(10)
     runner.deactivate()
-    encoded = runner.thumbnails.encoded
+    encoded = thumbnails.encoded
     assert encoded >= 1
     assert len(spans) == encoded  # every encoded thumbnail reached the span sink ...
     assert sink.images_published + sink.images_replaced == encoded  # ... and the view, from the same encode
