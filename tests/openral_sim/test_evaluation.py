@@ -175,6 +175,7 @@ print(json.dumps([[e.outcome() for e in batch.episodes], failure, builds]))
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # a Ray cluster of its own starts first: tens of seconds on a busy machine
 def test_ray_gives_the_outcomes_of_one_process_and_reports_a_failing_skill() -> None:
     if importlib.util.find_spec("ray") is None:  # not imported here: Ray installs process-wide handlers
         pytest.skip("needs the 'ray' extra")
