@@ -27,8 +27,6 @@ from openral_hal.feetech.emulator import ServoBusEmulator
 from openral_hal.feetech.protocol import Instruction, Register
 from openral_hal.manifests import load_robot_manifest
 
-pytestmark = pytest.mark.slow
-
 SERVO_IDS = range(1, 7)
 
 DEPLOYMENT = """\

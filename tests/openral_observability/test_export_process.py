@@ -219,7 +219,8 @@ def test_the_export_process_dies_with_a_sigkilled_parent(monkeypatch: pytest.Mon
         assert not _gone(child, 0.2), "the export process runs while its parent does"
         parent.kill()
         parent.wait(10)
-        assert _gone(child, 2.0), "the export process outlived its SIGKILLed parent"
+        # The kernel kills it at once; a loaded machine may take seconds to schedule its exit (nice +10).
+        assert _gone(child, 30.0), "the export process outlived its SIGKILLed parent"
     finally:
         if parent.poll() is None:
             parent.kill()

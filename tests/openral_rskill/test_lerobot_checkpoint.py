@@ -258,5 +258,5 @@ def test_weights_that_do_not_cover_the_policy_are_named_shortly(tmp_path: Path) 
     assert "missing tensors model.layer0.weight, model.layer1.weight, model.layer10.weight" in text
     assert "and 36 more" in text
     assert "unexpected tensors extra.bias" in text
-    assert len(text) < 400
+    assert len(text) - len(str(read.path)) < 325  # short whatever the 40 names; the folder's path is the caller's
     assert weights_mismatch(read, RuntimeError("CUDA out of memory")) is None

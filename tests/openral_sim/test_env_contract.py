@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -107,6 +108,10 @@ def test_worker_processes_give_the_outcomes_of_one_process(family: Family) -> No
     assert [e.outcome() for e in workers] == [e.outcome() for e in here]
 
 
+# Under ``uv run`` Ray would start its workers with ``uv run`` in a packaged copy of the project
+# (a fresh venv each); they are on this machine and use this interpreter.
+RAY_ENV = {**os.environ, "RAY_ENABLE_UV_RUN_RUNTIME_ENV": "0"}
+
 RAY_RUN = """
 import json, ray
 from openral_core import SimEnvironment
@@ -122,13 +127,16 @@ print(json.dumps([e.outcome() for e in batch.episodes]))
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # a Ray cluster of its own starts first: tens of seconds on a busy machine
 def test_ray_gives_the_outcomes_of_one_process(family: Family) -> None:
     if importlib.util.find_spec("ray") is None:  # not imported here: Ray installs process-wide handlers
         pytest.skip("needs the 'ray' extra")
     scene = _scene(family, n_episodes=2)
     here = run_units(split_episodes(scene, family.expert, {}, 2, 1)).episodes
     code = RAY_RUN.format(scene=scene.model_dump_json(), skill=family.expert)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=False, env=RAY_ENV
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == [e.outcome() for e in here]
 

@@ -172,6 +172,10 @@ def test_a_skill_failing_every_step_in_worker_processes_is_an_error_with_every_u
     assert "episode 0" in str(caught.value)
 
 
+# Under ``uv run`` Ray would start its workers with ``uv run`` in a packaged copy of the project
+# (a fresh venv each); they are on this machine and use this interpreter.
+RAY_ENV = {**os.environ, "RAY_ENABLE_UV_RUN_RUNTIME_ENV": "0"}
+
 RAY_RUN = """
 import json, ray
 from openral_core import ObserverConfig, SimEnvironment
@@ -195,13 +199,16 @@ print(json.dumps([[e.outcome() for e in batch.episodes], failure, builds]))
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # a Ray cluster of its own starts first: tens of seconds on a busy machine
 def test_ray_gives_the_outcomes_of_one_process_films_and_reports_a_failing_skill(tmp_path) -> None:
     if importlib.util.find_spec("ray") is None:  # not imported here: Ray installs process-wide handlers
         pytest.skip("needs the 'ray' extra")
     here = run_units(split_episodes(FILMED, "random", {}, 8, 1)).episodes
     # Ray starts its own processes and signal handlers: it runs in a child, not in the test process.
     code = RAY_RUN.format(scene=FILMED.model_dump_json(), videos=str(tmp_path))
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False, env=RAY_ENV
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     on_ray, failure, builds = json.loads(proc.stdout.strip().splitlines()[-1])
     assert on_ray == [e.outcome() for e in here]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -42,6 +43,10 @@ def test_a_skill_of_one_row_per_request_cannot_be_served() -> None:
         PolicyHost(SCENE, "so101_pick_expert", {}, limits=ServeLimits())
 
 
+# Under ``uv run`` Ray would start its workers with ``uv run`` in a packaged copy of the project
+# (a fresh venv each); they are on this machine and use this interpreter.
+RAY_ENV = {**os.environ, "RAY_ENABLE_UV_RUN_RUNTIME_ENV": "0"}
+
 RAY_RUN = """
 import json, ray
 from openral_core import SimEnvironment
@@ -67,7 +72,9 @@ def test_on_ray_the_server_is_an_actor_and_the_episodes_are_tasks() -> None:
         pytest.skip("needs the 'ray' extra")
     local = run_units(split_episodes(SCENE, "onnx_policy", POLICY, 4, 1)).episodes
     code = RAY_RUN.format(scene=SCENE.model_dump_json(), policy=POLICY)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=500, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=500, check=False, env=RAY_ENV
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     outcomes, stats, connect = json.loads(proc.stdout.strip().splitlines()[-1])
     assert outcomes == [e.outcome() for e in local]
