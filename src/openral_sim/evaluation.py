@@ -297,6 +297,11 @@ class Evaluator:
     def _ray(self) -> tuple[Any, Any]:
         """Ray, initialised, and :func:`run_unit` as its remote function."""
         if self._ray_run is None:
+            if self.ray_address == "local":
+                # Under ``uv run`` Ray would start each local worker in a fresh uv environment built from a
+                # packaged copy of the project (a network install, per worker); this machine's workers use
+                # this interpreter. A user who wants that can still set the variable.
+                os.environ.setdefault("RAY_ENABLE_UV_RUN_RUNTIME_ENV", "0")
             try:
                 import ray  # noqa: PLC0415
             except ImportError as exc:

@@ -229,3 +229,32 @@ def test_worker_processes_are_capped_by_the_units_and_the_cpus_this_process_may_
     assert worker_processes(1000, 10**6) == cpus
     assert worker_processes(1, 10**6) == 1
     assert worker_processes(4, 0) == 1  # at least one
+
+
+class _RecordingRay:
+    """Stands in for the ``ray`` module: remembers what the environment said when it was initialised."""
+
+    def __init__(self) -> None:
+        self.uv_runtime_env: list[str | None] = []
+
+    def is_initialized(self) -> bool:
+        return False
+
+    def init(self, **_kwargs: object) -> None:
+        self.uv_runtime_env.append(os.environ.get("RAY_ENABLE_UV_RUN_RUNTIME_ENV"))
+
+    def remote(self, function: object) -> object:
+        return function
+
+
+@pytest.mark.parametrize(("address", "expected"), [("local", "0"), ("ray://head:10001", None)])
+def test_a_local_ray_cluster_runs_its_workers_on_this_interpreter_not_a_fresh_uv_environment(
+    monkeypatch: pytest.MonkeyPatch, address: str, expected: str | None
+) -> None:
+    fake = _RecordingRay()
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.setenv("RAY_ENABLE_UV_RUN_RUNTIME_ENV", "unset afterwards")  # so the teardown removes it
+    monkeypatch.delenv("RAY_ENABLE_UV_RUN_RUNTIME_ENV")
+    evaluator = Evaluator(ray_address=address)
+    evaluator.ray()
+    assert fake.uv_runtime_env == [expected]
