@@ -56,6 +56,9 @@ def test_the_detector_runs_on_a_live_branch_and_finds_the_magenta_ball(tmp_path)
     runner = runner_module.DetectorRunner(pipeline, _manifest(tmp_path), sensor_id="front", on_detection=on_detection)
     assert pipeline.set_state(Gst.State.PLAYING) != Gst.StateChangeReturn.FAILURE
     try:
+        # The branch joins a running pipeline, as it would on a robot: wait until it is running.
+        change, state, _pending = pipeline.get_state(10 * Gst.SECOND)
+        assert state == Gst.State.PLAYING, f"the pipeline did not start: {change.value_nick}"
         runner.start()
         assert seen.wait(10), f"no detection after {runner.frames} frames ({runner.errors} errors)"
     finally:
