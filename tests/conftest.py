@@ -59,6 +59,16 @@ def gstreamer_available() -> bool:
     return True
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: one worker more than this process may use CPUs, one per CPU for the slow tail.
+
+    About a fifth of the default run waits on child processes, sockets and live cameras, so a spare
+    worker keeps the CPUs busy. The slow tail's tests start clusters and worker pools of their own.
+    """
+    cpus = len(os.sched_getaffinity(0))
+    return cpus if config.getoption("markexpr") == "slow" else cpus + 1
+
+
 def pytest_runtest_setup(item: pytest.Item) -> None:
     """Tests marked ``gl`` or ``gstreamer`` skip, naming the script that installs what they need."""
     if item.get_closest_marker("gl") is not None and not offscreen_gl_available():
