@@ -40,7 +40,10 @@ class EpisodeVideoParams(BaseModel):
     )
     episodes: int = Field(default=3, ge=1, description="How many episodes are filmed: those numbered below this.")
     prefix: str | None = Field(
-        default=None, min_length=1, description="File name prefix (default: the robot, or the scene's environment)."
+        default=None,
+        min_length=1,
+        pattern=r"^[^/\\\x00]+$",
+        description="File name prefix, no folder (default: the robot, or the scene's environment).",
     )
     camera: str | None = Field(default=None, min_length=1, description="The camera filmed (default: the first).")
 

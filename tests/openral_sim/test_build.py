@@ -97,6 +97,12 @@ def test_checking_builds_the_scenes_observers_without_opening_anything(tmp_path)
     assert unknown.value.field == "observers[0].id"
     with pytest.raises(ROSConfigError, match="renders no camera"):
         check_evaluation(_scene(observers=[{"id": "episode_video", "params": {"folder": str(tmp_path)}}]), "zero")
+    outside = {"folder": str(tmp_path / "videos"), "prefix": "../../elsewhere"}
+    with pytest.raises(ROSConfigError, match="prefix"):
+        check_evaluation(
+            _scene(cameras=watched.cameras, observers=[{"id": "episode_video", "params": outside}]), "zero"
+        )
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_cache_runs_slices_on_one_environment_with_the_outcomes_of_a_fresh_run() -> None:
