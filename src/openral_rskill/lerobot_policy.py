@@ -28,12 +28,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import Action, ControlMode, RobotManifest, ROSConfigError, RSkillInfo, WorldState
+from openral_hal.lerobot.units import JointUnits, UnitConversion, plausible_units
 from openral_rskill.anchoring import AbsoluteAnchor, ActionRepresentation, Anchor, StateOffsetAnchor
 from openral_rskill.base import ChunkingSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
 from openral_rskill.lerobot.checkpoint import Checkpoint
 from openral_rskill.lerobot.observation import ObservationMap
-from openral_rskill.lerobot.units import JointUnits, UnitConversion, plausible_units
 
 SKILL_ID = "lerobot_policy"
 MAX_BATCH = 256

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from openral_core import FrameEncoding, JointState, PrivilegedState, ROSConfigError, SensorFrame, WorldState
+from openral_hal.lerobot.units import UnitConversion
 from openral_hal.manifests import load_robot_manifest
 from openral_rskill.lerobot.checkpoint import REQUIRED_FILES, Checkpoint
 from openral_rskill.lerobot.observation import ObservationMap
-from openral_rskill.lerobot.units import UnitConversion
 from openral_rskill.lerobot_policy import LeRobotPolicySkill
 
 SO101 = load_robot_manifest("so101_follower")

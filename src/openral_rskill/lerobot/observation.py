@@ -24,8 +24,8 @@ import numpy as np
 from PIL import Image
 
 from openral_core import FrameEncoding, RobotManifest, ROSConfigError, SensorFrame, WorldState
+from openral_hal.lerobot.units import UnitConversion
 from openral_rskill.lerobot.checkpoint import ENVIRONMENT_STATE, IMAGE_PREFIX, STATE, Checkpoint, Feature
-from openral_rskill.lerobot.units import UnitConversion
 
 _FIELD = "params.path"
 
