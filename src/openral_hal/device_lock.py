@@ -24,8 +24,13 @@ from pathlib import Path
 from openral_core.errors import ROSHardwareError
 
 
-def lock_device(fd: int, path: str) -> None:
+def lock_device(fd: int, path: str, *, exclusive_open: bool = True) -> None:
     """Take exclusive ownership of the open device ``fd`` (``path`` names it in errors).
+
+    Args:
+        exclusive_open: Also refuse later ``open()``s of a serial port (``TIOCEXCL``); a HAL
+            whose driver opens the port itself after the lock is taken sets it afterwards
+            with :func:`refuse_other_opens`.
 
     Raises:
         ROSHardwareError: Another process holds the device; the message names it when known.
@@ -34,6 +39,12 @@ def lock_device(fd: int, path: str) -> None:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         raise device_busy_error(path) from None
+    if exclusive_open:
+        refuse_other_opens(fd)
+
+
+def refuse_other_opens(fd: int) -> None:
+    """Make a serial port refuse further ``open()``s by non-root programs (``TIOCEXCL``); never raises."""
     if os.isatty(fd):
         with contextlib.suppress(OSError):
             fcntl.ioctl(fd, termios.TIOCEXCL)

@@ -36,6 +36,7 @@ def _shipped(robot_id: str) -> Traversable:
 SO100_FOLLOWER = _shipped("so100_follower")
 SO101_FOLLOWER = _shipped("so101_follower")
 ALOHA_BIMANUAL_VIPERX = _shipped("aloha_bimanual_viperx")
+BI_SO101_FOLLOWER = _shipped("bi_so101_follower")
 
 
 def known_robots() -> list[str]:

@@ -24,7 +24,7 @@ def _so101_mjcf() -> Path:
 
 
 def test_known_robots_lists_the_shipped_manifests() -> None:
-    assert known_robots() == ["aloha_bimanual_viperx", "so100_follower", "so101_follower"]
+    assert known_robots() == ["aloha_bimanual_viperx", "bi_so101_follower", "so100_follower", "so101_follower"]
 
 
 @pytest.mark.parametrize("robot_id", ["so100_follower", "so101_follower"])
@@ -134,3 +134,17 @@ def test_aloha_limits_are_the_simulated_arms_joint_ranges() -> None:
         assert gripper.kind == JointKind.GRIPPER
         assert (gripper.lower, gripper.upper) == (0.0, 1.0)
     assert set(manifest.mujoco.cameras) <= {model.camera(i).name for i in range(model.ncam)}
+
+
+def test_the_bimanual_so101_is_two_so101_arms_with_lerobots_prefixes() -> None:
+    single = load_robot_manifest("so101_follower")
+    pair = load_robot_manifest("bi_so101_follower")
+    assert pair.joint_names == [f"{side}_{name}" for side in ("left", "right") for name in single.joint_names]
+    for side in range(2):
+        for one, arm in zip(single.joints, pair.joints[6 * side : 6 * side + 6], strict=True):
+            assert (arm.kind, arm.lower, arm.upper, arm.velocity_limit) == (
+                one.kind,
+                one.lower,
+                one.upper,
+                one.velocity_limit,
+            )
