@@ -26,12 +26,13 @@ pytest.importorskip("scservo_sdk", reason=LEROBOT_REASON)
 from click.testing import CliRunner  # noqa: E402
 
 from openral_cli.main import cli  # noqa: E402
-from openral_core import Action, ControlMode, ROSConfigError, ROSHardwareError  # noqa: E402
+from openral_core import Action, ControlMode, RobotEnvironment, ROSConfigError, ROSHardwareError  # noqa: E402
 from openral_hal.feetech import protocol as p  # noqa: E402
 from openral_hal.feetech.emulator import ServoBusEmulator  # noqa: E402
 from openral_hal.feetech.protocol import Instruction, Register  # noqa: E402
 from openral_hal.lerobot.robot_hal import LeRobotRobotHAL  # noqa: E402
 from openral_hal.manifests import load_robot_manifest  # noqa: E402
+from openral_runner.factory import build_runner  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
@@ -267,3 +268,40 @@ def test_deploy_runs_hello_through_lerobots_driver_and_sigint_leaves_torque_off(
     assert moving.sum() >= 3, "the hello wave moves several joints"
     # A servo at 3000 ticks/s reaches each 30 Hz goal of this slow wave within a few ticks of it.
     assert np.abs(goals[:, moving] - positions[:, moving]).max() <= 40
+
+
+# -- a bimanual SO-101: two buses, one manifest ------------------------------------------------------
+
+
+def test_bimanual_so101_runs_on_two_buses_under_one_manifest(tmp_path: Path) -> None:
+    write_calibration(tmp_path, "pair_left")
+    write_calibration(tmp_path, "pair_right")
+    with ServoBusEmulator(range(1, 7), initial_ticks=START) as left, ServoBusEmulator(range(1, 7)) as right:
+        text = (ROOT / "deployments" / "bi_so101_lerobot.yaml").read_text(encoding="utf-8")
+        text = text.replace("/dev/ttyACM0", left.port).replace("/dev/ttyACM1", right.port)
+        text = text.replace("id: my_pair", f"id: pair\n    calibration_dir: {tmp_path}")
+        path = tmp_path / "pair.yaml"
+        path.write_text(text, encoding="utf-8")
+        runner, skill = build_runner(RobotEnvironment.from_yaml(path), base_dir=tmp_path)
+        skill.configure()
+        skill.activate()
+        runner.activate()
+        try:
+            state = runner.hal.read_state()
+            np.testing.assert_allclose(state.positions[:6], expected_radians(START), atol=1e-9)
+            np.testing.assert_allclose(state.positions[6:], expected_radians(dict.fromkeys(range(1, 7), 2048)))
+            result = runner.run(45)
+            moved_left, moved_right = left.goals(), right.goals()
+        finally:
+            runner.deactivate()
+            skill.shutdown()
+        assert result.n_ticks == 45
+        assert result.failed_ticks == 0
+        sent = np.array([t.sent_action for t in runner.recent_ticks])
+        # Both arms follow the wave: each bus got goals away from where its arm started.
+        assert sum(moved_left[i] != START[i] for i in range(1, 7)) >= 3
+        assert sum(moved_right[i] != 2048 for i in range(1, 7)) >= 3
+        assert np.ptp(sent[:, :6], axis=0).max() > 0.05
+        assert np.ptp(sent[:, 6:], axis=0).max() > 0.05
+        assert not any(left.torque().values())
+        assert not any(right.torque().values())
