@@ -31,6 +31,7 @@ from openral_hal.feetech import protocol as p  # noqa: E402
 from openral_hal.feetech.emulator import ServoBusEmulator  # noqa: E402
 from openral_hal.feetech.protocol import Instruction, Register  # noqa: E402
 from openral_hal.lerobot.robot_hal import LeRobotRobotHAL  # noqa: E402
+from openral_hal.lerobot.units import JointUnits, UnitConversion  # noqa: E402
 from openral_hal.manifests import load_robot_manifest  # noqa: E402
 from openral_runner.factory import build_runner  # noqa: E402
 
@@ -305,3 +306,17 @@ def test_bimanual_so101_runs_on_two_buses_under_one_manifest(tmp_path: Path) -> 
         assert np.ptp(sent[:, 6:], axis=0).max() > 0.05
         assert not any(left.torque().values())
         assert not any(right.torque().values())
+
+
+@pytest.mark.parametrize(("use_degrees", "units"), [(True, "degrees"), (False, "range")])
+def test_the_robot_and_a_lerobot_policy_read_joints_in_the_same_units(
+    tmp_path: Path, use_degrees: bool, units: JointUnits
+) -> None:
+    """A policy recorded with lerobot-record on this arm gets back, through openral, the numbers it was trained on."""
+    write_calibration(tmp_path, "arm")
+    params = {"type": "so101_follower", "port": "/dev/x", "id": "arm", "calibration_dir": str(tmp_path)}
+    hal = LeRobotRobotHAL(SO101, {**params, "use_degrees": use_degrees})
+    policy = UnitConversion(SO101, units)
+    assert hal.units.norms == policy.norms
+    lerobot_values = np.array([12.5, -40.0, 80.0, -3.0, 99.0, 37.0])
+    np.testing.assert_allclose(policy.to_policy(hal.units.to_radians(lerobot_values)), lerobot_values)
