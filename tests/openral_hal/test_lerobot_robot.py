@@ -320,3 +320,27 @@ def test_the_robot_and_a_lerobot_policy_read_joints_in_the_same_units(
     assert hal.units.norms == policy.norms
     lerobot_values = np.array([12.5, -40.0, 80.0, -3.0, 99.0, 37.0])
     np.testing.assert_allclose(policy.to_policy(hal.units.to_radians(lerobot_values)), lerobot_values)
+
+
+def test_a_forced_stop_turns_torque_off_while_a_read_is_stuck(arm: LeRobotRobotHAL, bus: ServoBusEmulator) -> None:
+    arm.connect()
+    bus.mute = True  # the servos execute requests but no reply comes back: the next read hangs in retries
+    failures: list[BaseException] = []
+
+    def read_until_it_fails() -> None:
+        try:
+            arm.read_state()
+        except ROSHardwareError as exc:
+            failures.append(exc)
+
+    stuck = threading.Thread(target=read_until_it_fails, daemon=True)
+    stuck.start()
+    wait_until(lambda: bus.requests > 0 and stuck.is_alive())
+    stopper = threading.Thread(target=arm.disconnect, daemon=True)
+    stopper.start()
+    wait_until(lambda: not any(bus.torque().values()), timeout=0.5)
+    assert stuck.is_alive(), "torque went off before the stuck read gave up"
+    stuck.join(30)
+    stopper.join(30)
+    assert len(failures) == 1
+    assert not arm.is_connected

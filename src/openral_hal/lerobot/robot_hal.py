@@ -42,6 +42,8 @@ from openral_core.config import validate_model
 from openral_core.errors import ROSConfigError, ROSHardwareError
 from openral_core.robot import RobotManifest
 from openral_core.world import JointState
+from openral_hal.feetech import protocol as feetech
+from openral_hal.feetech.protocol import Register
 from openral_hal.joints import JointIndex
 from openral_hal.lerobot.calibration import require_calibration, write_calibration_where_it_differs
 from openral_hal.lerobot.device_config import build_device_config
@@ -146,7 +148,14 @@ class LeRobotRobotHAL:
             self._connected = True
 
     def disconnect(self) -> None:
-        """Torque off on every bus, close the ports, release the locks. Idempotent; never raises."""
+        """Torque off on every bus, close the ports, release the locks. Idempotent; never raises.
+
+        Safe from another thread while a transaction is stuck (a forced stop): a Feetech bus gets a
+        torque-off broadcast at once, without waiting for the bus, before the orderly shutdown.
+        """
+        if self._connected:
+            for found in motor_buses(self.robot):
+                _broadcast_torque_off(found.bus)
         with self._lock:
             self._connected = False
             self._stop_robot()
@@ -311,6 +320,16 @@ def _hold_before_torque(bus: Any) -> None:
 
     bus.enable_torque = enable_holding
     bus._openral_holds = True
+
+
+def _broadcast_torque_off(bus: Any) -> None:
+    """One Feetech broadcast write of torque off straight onto the port: no reply, no lock, never raises."""
+    serial_port = getattr(getattr(bus, "port_handler", None), "ser", None)
+    if serial_port is None or type(bus).__name__ != "FeetechMotorsBus":
+        return
+    with suppress(Exception):
+        serial_port.write(feetech.write_packet(feetech.BROADCAST_ID, Register.TORQUE_ENABLE, b"\x00"))
+        serial_port.flush()
 
 
 def _hardware_error(what: str, exc: Exception) -> ROSHardwareError:
