@@ -209,3 +209,84 @@ def test_openral_sim_run_runs_a_plugin_policy_as_a_chunking_skill(
     called = calls.read_text().split()
     assert "select_action" not in called  # never stepped tick by tick: the executor takes rows of chunks
     assert 4 <= called.count("predict_action_chunk") <= 10  # 10 of each 20 rows used: a chunk every few ticks
+
+
+ACT_SMOOTH = "lerobot-policy-act-smooth==0.1.0"
+"""A real third-party policy plugin from PyPI; never a dependency of openral, installed only into the test's venv."""
+
+ACT_SMOOTH_PROBE = """\
+import json, sys
+import numpy as np, torch
+from pathlib import Path
+from lerobot.configs.types import FeatureType, PolicyFeature
+from openral_hal.lerobot.plugins import load_lerobot_plugins
+from openral_rskill.lerobot.checkpoint import Checkpoint
+
+load_lerobot_plugins()  # act_smooth is registered by its package, found as an installed distribution
+from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+from lerobot_policy_act_smooth import ACTSmoothConfig
+from openral_rskill.lerobot.runtime import LoadedPolicy
+
+features = {"observation.state": (FeatureType.STATE, 14), "observation.environment_state": (FeatureType.ENV, 3),
+            "action": (FeatureType.ACTION, 4)}
+made = {key: PolicyFeature(type=kind, shape=(size,)) for key, (kind, size) in features.items()}
+config = ACTSmoothConfig(input_features={k: v for k, v in made.items() if k != "action"},
+                         output_features={"action": made["action"]}, chunk_size=20, n_action_steps=10,
+                         dim_model=32, dim_feedforward=64, n_encoder_layers=1, n_decoder_layers=1, device="cpu")
+torch.manual_seed(0)
+policy = get_policy_class("act_smooth")(config)
+stats = {k: {"mean": torch.zeros(n), "std": torch.ones(n), "min": -torch.ones(n), "max": torch.ones(n)}
+         for k, (_, n) in features.items()}
+pre, post = make_pre_post_processors(config, dataset_stats=stats)
+folder = Path(sys.argv[1])
+for part in (policy, pre, post):
+    part.save_pretrained(folder)
+checkpoint = Checkpoint.read(str(folder))
+loaded = LoadedPolicy(checkpoint, device="cpu")
+try:
+    loaded.chunk([{"observation.state": np.zeros(14, np.float32),
+                   "observation.environment_state": np.zeros(3, np.float32)}], "")
+    chunked = "ok"
+except AssertionError as exc:
+    chunked = str(exc)
+print(json.dumps({"type": checkpoint.policy_type, "rows": [checkpoint.chunk_size, checkpoint.n_action_steps],
+                  "class": type(loaded.policy).__name__, "chunk": chunked}))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_the_act_smooth_plugin_from_pypi_loads_in_a_venv_of_its_own(tmp_path: Path) -> None:
+    """``lerobot-policy-act-smooth`` installed by uv into a venv that sees this one's packages (lerobot, torch).
+
+    It registers ``act_smooth`` and loads; its ``predict_action_chunk`` needs the previous chunk's
+    committed rows as a prefix (``inference_action``), which openral does not hand a policy: its
+    chunk is refused, so the skill fails in ``configure``, never acting on a guess. Needs PyPI.
+    """
+    uv = shutil.which("uv")
+    if uv is None:
+        pytest.skip("needs uv, which installs the plugin into a venv of the test's own")
+    venv = tmp_path / "venv"
+    subprocess.run([uv, "venv", "--python", sys.executable, str(venv)], check=True, capture_output=True, timeout=120)
+    site = next((venv / "lib").glob("python3.*/site-packages"))
+    here = next(p for p in sys.path if p.endswith("site-packages") and Path(p, "lerobot").is_dir())
+    (site / "zz_this_environment.pth").write_text(f"import site; site.addsitedir({here!r})\n")
+    python = venv / "bin" / "python"
+    subprocess.run(
+        [uv, "pip", "install", "--python", str(python), "--no-deps", ACT_SMOOTH],
+        check=True, capture_output=True, timeout=300,
+    )  # fmt: skip
+    (tmp_path / "probe.py").write_text(ACT_SMOOTH_PROBE)
+    env = {key: value for key, value in os.environ.items() if key not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    out = subprocess.run(
+        [str(python), str(tmp_path / "probe.py"), str(tmp_path / "pretrained_model")],
+        env=env, capture_output=True, text=True, timeout=400, check=False,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    found = json.loads(out.stdout.splitlines()[-1])
+    assert found == {
+        "type": "act_smooth",
+        "rows": [20, 10],  # read from its config.json as a chunking policy, no list naming it
+        "class": "ACTSmoothPolicy",
+        "chunk": "batch must contain inference_action",
+    }
