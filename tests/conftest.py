@@ -4,14 +4,18 @@
   'lerobot' extra's, which .ci/run runs on Python 3.12).
 * ``otel`` installs in-memory OpenTelemetry providers once per session (globals can be set only
   once per process); ``telemetry`` hands it to a test with spans cleared and a metric baseline.
+* ``installed_package`` makes a real installed distribution (a third-party LeRobot plugin, say) in
+  a folder of the test's own, for a child process's ``PYTHONPATH`` or for this process.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
 
 import pytest
 from opentelemetry import metrics, trace
@@ -311,3 +315,81 @@ def deploy_process() -> Iterator[Callable[..., DeployProcess]]:
             process.kill()
         else:
             process.close()
+
+
+class InstalledPackages:
+    """Distributions installed into one folder as pip installs them: the package and its ``.dist-info``.
+
+    ``importlib.metadata.distributions()`` finds them wherever the folder is on the path, so LeRobot's
+    ``register_third_party_plugins()`` imports a ``lerobot_policy_*`` (``_robot_``, ``_camera_``, ...)
+    one like any installed plugin. :attr:`site` is the folder: put it on a child process's
+    ``PYTHONPATH`` (:meth:`pythonpath`), or make a package importable here with
+    ``importable=True``; the fixture then takes it out of ``sys.path``, ``sys.modules`` and the
+    import caches again afterwards. What an imported package registered elsewhere (a config class
+    in LeRobot's registry) stays for the process: give each test its own type names.
+
+    Args:
+        site: The folder (empty).
+    """
+
+    def __init__(self, site: Path) -> None:
+        self.site = site
+        self._modules: list[str] = []
+
+    def __call__(
+        self, name: str, source: str, *, files: Mapping[str, str] | None = None, importable: bool = False
+    ) -> Path:
+        """Install distribution ``name`` (its import name too, as LeRobot imports it) into :attr:`site`; returns it.
+
+        Args:
+            name: The distribution's ``Name`` and the package's module name (``lerobot_policy_x``).
+            source: The package's ``__init__.py``.
+            files: More modules of the package, file name (``modeling_x.py``) to source.
+            importable: Also put :attr:`site` on this process's ``sys.path`` until the test ends.
+        """
+        package = self.site / name
+        package.mkdir()
+        written = {"__init__.py": source, **(files or {})}
+        for file_name, text in written.items():
+            (package / file_name).write_text(text, encoding="utf-8")
+        info = self.site / f"{name}-0.1.dist-info"
+        info.mkdir()
+        (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.1\n", encoding="utf-8")
+        (info / "INSTALLER").write_text("pip\n", encoding="utf-8")
+        records = [f"{name}/{file_name},," for file_name in written]
+        records += [f"{info.name}/{entry},," for entry in ("METADATA", "INSTALLER", "RECORD")]
+        (info / "RECORD").write_text("\n".join(records) + "\n", encoding="utf-8")
+        self._modules.append(name)
+        if importable and str(self.site) not in sys.path:
+            sys.path.insert(0, str(self.site))
+        _forget_imports()
+        return self.site
+
+    def pythonpath(self) -> str:
+        """``PYTHONPATH`` for a child process: :attr:`site`, then what this process was given."""
+        return os.pathsep.join(filter(None, (str(self.site), os.environ.get("PYTHONPATH"))))
+
+    def remove(self) -> None:
+        """Take :attr:`site` and every module imported from its packages out of this process."""
+        while str(self.site) in sys.path:
+            sys.path.remove(str(self.site))
+        for module in list(sys.modules):
+            if module.split(".")[0] in self._modules:
+                del sys.modules[module]
+        _forget_imports()
+
+
+def _forget_imports() -> None:
+    """Path finders and ``importlib.metadata`` re-read the folders; LeRobot's plugins are looked for again."""
+    importlib.invalidate_caches()
+    plugins = sys.modules.get("openral_hal.lerobot.plugins")  # only where this process loaded it
+    if plugins is not None:
+        plugins.load_lerobot_plugins.cache_clear()
+
+
+@pytest.fixture
+def installed_package(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InstalledPackages]:
+    """Install made-up distributions for this test (see :class:`InstalledPackages`); removed again afterwards."""
+    packages = InstalledPackages(tmp_path_factory.mktemp("site-packages"))
+    yield packages
+    packages.remove()

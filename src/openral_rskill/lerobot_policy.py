@@ -10,13 +10,15 @@
         joint_units: degrees    # radians (openral recordings) | degrees | range (LeRobot's SO-101 conventions)
 
 Building the skill reads only the folder's JSON: the policy's inputs are matched to what the
-deployment supplies (:mod:`openral_rskill.lerobot.observation`), its chunk size and history
-length become the skill's, and nothing heavy is imported, so ``openral validate`` is quick and
-needs no torch. ``configure`` loads the policy through LeRobot's own API on the device, checks the
-joint units against the saved normalisation statistics, and runs ``warmup_inferences`` real
-inferences there (CUDA context, kernels, allocator), so the first tick is on time. A chunking
-policy runs behind the chunk executor: its chunk is one array from the model to the executor,
-its first ``rows`` rows used (the checkpoint's ``n_action_steps`` unless overridden).
+deployment supplies (:mod:`openral_rskill.lerobot.observation`), its chunk size and history length
+become the skill's, and nothing heavy is imported, so ``openral validate`` is quick and needs no
+torch (whether LeRobot knows the policy type, built in or registered by an installed
+``lerobot_policy_*`` plugin, is known only at ``configure``). ``configure`` imports LeRobot's
+plugins and loads the policy through LeRobot's own API on the device, checks the joint units
+against the saved normalisation statistics, and runs ``warmup_inferences`` real inferences there
+(CUDA context, kernels, allocator), so the first tick is on time. A chunking policy runs behind the
+chunk executor: its chunk is one array from the model to the executor, its first ``rows`` rows used
+(the checkpoint's ``n_action_steps`` unless overridden).
 """
 
 from __future__ import annotations

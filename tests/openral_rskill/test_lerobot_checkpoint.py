@@ -52,6 +52,18 @@ def test_a_checkpoint_says_what_it_reads_and_how_many_rows_it_predicts(tmp_path:
     assert (diffusion.chunk_size, diffusion.observation_steps) == (8, 2)  # the executed window of the horizon
 
 
+def test_a_policy_chunks_by_what_its_configuration_declares_whatever_its_type(tmp_path: Path) -> None:
+    plugin = LeRobotPolicySkill.from_config(
+        {"path": str(checkpoint(tmp_path, type="act_from_a_plugin"))}, robot=SO101, rate_hz=30
+    )
+    assert (plugin.checkpoint.chunk_size, plugin.info.chunk_size) == (20, 10)  # runs behind the chunk executor
+    assert plugin.serves_many_episodes()
+    no_chunk = {"type": "vqbet", "chunk_size": None, "n_action_steps": 5}
+    stepping = LeRobotPolicySkill.from_config({"path": str(checkpoint(tmp_path, **no_chunk))}, robot=SO101, rate_hz=30)
+    assert (stepping.checkpoint.chunk_size, stepping.info.chunk_size) == (1, 1)  # select_action, tick by tick
+    assert not stepping.serves_many_episodes()
+
+
 def test_a_hub_id_is_refused_saying_how_to_download_it() -> None:
     with pytest.raises(ROSConfigError, match=r"params\.path: 'lerobot/act_aloha' .*Hub id.*huggingface-cli download"):
         Checkpoint.read("lerobot/act_aloha")

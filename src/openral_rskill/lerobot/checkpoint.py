@@ -5,6 +5,12 @@
 normalisation statistics. The configuration is plain JSON, so everything a deployment is checked
 against (features, shapes, chunk sizes) is known before PyTorch is imported: ``openral validate``
 refuses a mismatch in a fraction of a second.
+
+Whether LeRobot knows the policy type is not known from the JSON: a type may be built in or
+registered by an installed plugin package (``lerobot_policy_*``), and only importing LeRobot and
+its plugins tells (:meth:`Checkpoint.check_type`, when the policy loads). How the policy acts is
+read from what its configuration declares, so a plugin's type needs no list here: a
+``chunk_size`` makes it a chunking policy of that many rows.
 """
 
 from __future__ import annotations
@@ -27,8 +33,11 @@ REQUIRED_FILES: Final = (
 )
 """What ``PreTrainedPolicy.save_pretrained`` and the processors' ``save_pretrained`` leave in the folder."""
 
-CHUNKING_TYPES: Final = frozenset({"act", "diffusion", "smolvla", "pi0", "pi05", "pi0_fast", "groot"})
-"""Policies whose ``predict_action_chunk`` returns several future actions."""
+WINDOW_TYPES: Final = frozenset({"diffusion"})
+"""Policies whose ``predict_action_chunk`` returns the ``n_action_steps`` window of a longer horizon."""
+
+PLUGIN_PREFIX: Final = "lerobot_policy_"
+"""What LeRobot's plugin discovery imports: every installed distribution whose name starts so."""
 
 _HUB_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
 _KEY_LINE = re.compile(r"(Missing|Unexpected) key\(s\) in state_dict: ([^\n]*)")
@@ -58,11 +67,13 @@ class Checkpoint:
 
     Attributes:
         path: The folder.
-        policy_type: LeRobot's policy type (``act``, ``diffusion``, ...).
+        policy_type: LeRobot's policy type (``act``, ``diffusion``, ...), or a plugin's.
         inputs: The input features by key.
         action: The action feature.
-        chunk_size: Rows ``predict_action_chunk`` returns (ACT's ``chunk_size``, Diffusion's
-            ``n_action_steps``; 1 for single-step policies).
+        chunk_size: Rows ``predict_action_chunk`` returns: the ``chunk_size`` the configuration
+            declares (ACT, SmolVLA, pi0 and any plugin policy built like them), Diffusion's
+            ``n_action_steps``, and 1 for a policy declaring no chunk (run step by step through
+            its own ``select_action``).
         n_action_steps: Rows LeRobot executes of each chunk before asking again.
         observation_steps: Observations one inference reads (``n_obs_steps``).
         trained_device: The device the checkpoint was trained on.
@@ -120,12 +131,10 @@ class Checkpoint:
         if action is None or len(action.shape) != 1:
             raise ROSConfigError(f"{path / 'config.json'} declares no 1-d 'action' output", field=field)
         n_action_steps = _positive(config, "n_action_steps", path, field, default=1)
-        if policy_type == "diffusion":
+        if policy_type in WINDOW_TYPES:
             chunk_size = n_action_steps  # predict_action_chunk returns the executed window of the horizon
-        elif policy_type in CHUNKING_TYPES:
-            chunk_size = _positive(config, "chunk_size", path, field, default=n_action_steps)
         else:
-            chunk_size = 1
+            chunk_size = _positive(config, "chunk_size", path, field, default=1)
         return cls(
             path=path,
             policy_type=policy_type,
@@ -138,7 +147,9 @@ class Checkpoint:
         )
 
     def check_type(self, known: Iterable[str]) -> None:
-        """Refuse a policy type the installed LeRobot does not know, naming the ones it does.
+        """Refuse a policy type neither LeRobot nor an installed plugin registers, naming the ones known.
+
+        ``known``: the types registered once LeRobot's plugins are imported.
 
         Raises:
             ROSConfigError: ``policy_type`` is not among ``known``.
@@ -146,10 +157,11 @@ class Checkpoint:
         names = sorted(known)
         if self.policy_type not in names:
             raise ROSConfigError(
-                f"{self.path / 'config.json'} names policy type {self.policy_type!r}, which this LeRobot does not know "
-                f"(it knows {', '.join(names)})",
+                f"{self.path / 'config.json'} names policy type {self.policy_type!r}, which neither LeRobot nor an "
+                f"installed plugin registers (known: {', '.join(names)})",
                 field=_FIELD,
-                hint="check the type in config.json, or install the LeRobot version that wrote the checkpoint",
+                hint=f"a plugin's policy type needs its package installed: pip install {PLUGIN_PREFIX}<name> "
+                f"(LeRobot imports every installed {PLUGIN_PREFIX}* package)",
             )
 
     @property

@@ -1,6 +1,7 @@
 """A LeRobot checkpoint loaded through LeRobot's own API, and its inference: the one module importing torch.
 
-Loading is LeRobot's: ``PreTrainedConfig.from_pretrained``, the policy class's
+Loading is LeRobot's, after its installed plugins are imported as its own scripts do (a
+``lerobot_policy_*`` package registers its policy type): ``PreTrainedConfig.from_pretrained``, the policy class's
 ``from_pretrained`` and ``make_pre_post_processors`` with the saved pipelines and statistics, so
 the policy runs exactly as ``lerobot-eval`` would run it. openral changes three things only, all
 for running offline and on the device asked for: the hub is never contacted
@@ -24,6 +25,7 @@ from typing import Any, Final
 import numpy as np
 
 from openral_core import ROSConfigError, ROSDependencyMissing
+from openral_hal.lerobot.plugins import load_lerobot_plugins
 from openral_rskill.lerobot.checkpoint import STATE, Checkpoint, weights_mismatch
 
 try:
@@ -84,6 +86,7 @@ class LoadedPolicy:
             torch.set_num_threads(threads)
         path = checkpoint.path
         try:
+            load_lerobot_plugins()  # a plugin's policy type is registered only once its package is imported
             checkpoint.check_type(PreTrainedConfig.get_known_choices())
             config = PreTrainedConfig.from_pretrained(path)
             if getattr(config, "pretrained_backbone_weights", None):
@@ -170,7 +173,22 @@ class LoadedPolicy:
             actions = self.post(actions)
             self._synchronize()
         rows = actions.detach().to("cpu", torch.float64).numpy()
+        self._check_rows(rows.shape)
         return [np.asarray(rows[i]) for i in range(len(batches))]
+
+    def _check_rows(self, shape: tuple[int, ...]) -> None:
+        """Refuse a chunk shorter than the configuration declares: the policy class must deliver what config.json says.
+
+        A policy is run as a chunking one by what its ``config.json`` declares (``chunk_size``),
+        read before its class is known; its ``predict_action_chunk`` is what proves it.
+        """
+        expected = self.checkpoint.chunk_size
+        if expected > 1 and (len(shape) != 3 or shape[1] < expected):
+            raise ROSConfigError(
+                f"{self.checkpoint.path / 'config.json'} declares chunks of {expected} rows, but the "
+                f"{self.checkpoint.policy_type} policy's predict_action_chunk returned an array of shape {shape}",
+                field=_FIELD,
+            )
 
     def _noise(self, seeds: Sequence[int | None]) -> Any:
         """``(requests, *noise_shape)``: each request's noise from its own seed, drawn on the CPU (so on any device)."""
