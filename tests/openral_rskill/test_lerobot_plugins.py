@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from structlog.testing import capture_logs
 
 LEROBOT_REASON = "needs the 'lerobot' extra, which installs on Python 3.12 or newer (lerobot 0.6)"
 
@@ -145,14 +146,19 @@ def test_a_plugin_policy_returning_fewer_rows_than_its_config_declares_is_refuse
 
 
 def test_a_plugin_that_fails_to_import_leaves_the_others_and_lerobot_working(
-    tmp_path: Path, installed_package: InstalledPackages, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, installed_package: InstalledPackages
 ) -> None:
     installed_package(
         "lerobot_policy_broken_on_import", "raise RuntimeError('this plugin is broken')\n", importable=True
     )
     _install_plugin(installed_package, "act_plugin_beside_broken", importable=True)
-    load_lerobot_plugins()  # logs the broken one and goes on
-    assert "lerobot_policy_broken_on_import" in caplog.text
+    with capture_logs() as logs:
+        imported = load_lerobot_plugins()  # logs the broken one and goes on
+    assert "lerobot_policy_act_plugin_beside_broken" in imported
+    assert "lerobot_policy_broken_on_import" not in imported
+    failed = [entry for entry in logs if entry["event"] == "lerobot_plugin_failed"]
+    assert [entry["module"] for entry in failed] == ["lerobot_policy_broken_on_import"]
+    assert "this plugin is broken" in failed[0]["error"]
     builtin = LoadedPolicy(Checkpoint.read(str(COMMITTED)), device="cpu")
     assert type(builtin.policy).__name__ == "ACTPolicy"
     plugin = LoadedPolicy(Checkpoint.read(str(_checkpoint(tmp_path, "act_plugin_beside_broken"))), device="cpu")
