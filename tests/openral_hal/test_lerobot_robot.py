@@ -344,3 +344,53 @@ def test_a_forced_stop_turns_torque_off_while_a_read_is_stuck(arm: LeRobotRobotH
     stopper.join(30)
     assert len(failures) == 1
     assert not arm.is_connected
+
+
+# -- a third-party LeRobot robot package ---------------------------------------------------------------
+
+PLUGIN_CONFIG = """
+from dataclasses import dataclass
+
+from lerobot.robots.config import RobotConfig
+from lerobot.robots.so_follower.config_so_follower import SOFollowerConfig
+
+
+@RobotConfig.register_subclass("third_party_arm")
+@dataclass
+class ThirdPartyArmConfig(RobotConfig, SOFollowerConfig):
+    pass
+"""
+PLUGIN_ROBOT = """
+from lerobot.robots.so_follower.so_follower import SOFollower
+
+from .config_third_party_arm import ThirdPartyArmConfig
+
+
+class ThirdPartyArm(SOFollower):
+    config_class = ThirdPartyArmConfig
+    name = "third_party_arm"
+"""
+
+
+def test_a_robot_from_an_installed_lerobot_robot_package_is_driven(
+    tmp_path: Path, bus: ServoBusEmulator, installed_package
+) -> None:
+    installed_package(
+        "lerobot_robot_third_party_arm",
+        "from .config_third_party_arm import ThirdPartyArmConfig\nfrom .third_party_arm import ThirdPartyArm\n",
+        files={"config_third_party_arm.py": PLUGIN_CONFIG, "third_party_arm.py": PLUGIN_ROBOT},
+        importable=True,
+    )
+    write_calibration(tmp_path, "arm")
+    hal = LeRobotRobotHAL(
+        SO101, {"type": "third_party_arm", "port": bus.port, "id": "arm", "calibration_dir": str(tmp_path)}
+    )
+    assert type(hal.robot).__name__ == "ThirdPartyArm"
+    hal.connect()
+    try:
+        np.testing.assert_allclose(hal.read_state().positions, expected_radians(START), atol=1e-9)
+        hal.send_action(Action(control_mode=ControlMode.JOINT_POSITION, joint_names=["wrist_flex"], targets=[[0.2]]))
+        wait_until(lambda: bus.positions()[4] != START[4])
+    finally:
+        hal.disconnect()
+    assert not any(bus.torque().values())

@@ -53,7 +53,7 @@ def require_lerobot(needed_for: str) -> None:
 
 @functools.cache
 def _device_base(kind: DeviceKind) -> tuple[Any, tuple[str, ...]]:
-    """The kind's config base class, after importing LeRobot's device modules; the ones that failed."""
+    """The kind's config base class, after importing LeRobot's own device modules; the ones that failed."""
     package_name, module_name, class_name = _PACKAGES[kind]
     package = importlib.import_module(package_name)
     failed = []
@@ -63,7 +63,6 @@ def _device_base(kind: DeviceKind) -> tuple[Any, tuple[str, ...]]:
                 importlib.import_module(f"{package_name}.{module.name}")
             except Exception as exc:  # a device whose SDK is not installed: named if asked for
                 failed.append(f"{module.name} ({type(exc).__name__}: {exc})")
-    load_lerobot_plugins()
     return getattr(importlib.import_module(module_name), class_name), tuple(failed)
 
 
@@ -71,6 +70,7 @@ def known_types(kind: DeviceKind) -> list[str]:
     """Every registered type of this kind, LeRobot's and the installed plugins', sorted."""
     require_lerobot(f"LeRobot {kind}s")
     base, _ = _device_base(kind)
+    load_lerobot_plugins()
     return sorted(base.get_known_choices())
 
 
@@ -83,6 +83,7 @@ def device_config_class(kind: DeviceKind, type_name: str, *, field: str) -> Any:
     """
     require_lerobot(f"LeRobot {kind}s")
     base, failed = _device_base(kind)
+    load_lerobot_plugins()
     choices = sorted(base.get_known_choices())
     if type_name in choices:
         return base.get_choice_class(type_name)
