@@ -9,7 +9,7 @@
 ``params`` are ``type`` and LeRobot's own keys for that teleoperator, decoded by its own config
 class, and the device is built by LeRobot's factory when the skill is built: ``openral validate``
 refuses what connecting would (an unknown key or type, a missing calibration file, a device whose
-joints are not the follower's) without opening a port. The teleoperator connects on activation
+joints are not the follower's); a leader arm's port opens only on activation. It connects then
 without calibrating: calibration is LeRobot's interactive ``lerobot-calibrate``, done once; a
 calibration file the motors do not hold yet is written to them, as LeRobot's own prompt does on
 ENTER. Each step reads ``get_action()``: ``<joint>.pos`` keys (``left_``/``right_`` prefixed for a
@@ -122,7 +122,7 @@ class LeRobotTeleopSkill(RSkillBase):
         try:
             self.teleoperator.connect(calibrate=False)
             for found in motor_buses(self.teleoperator):
-                if not found.bus.is_calibrated:
+                if getattr(found.owner, "calibration", None) and not found.bus.is_calibrated:
                     _LOG.info("writing %s to the motors of %s", found.owner.calibration_fpath, found.owner)
                     found.bus.write_calibration(found.owner.calibration)
         except BaseException:
@@ -189,7 +189,9 @@ def _make_teleoperator(config: Any, type_name: str) -> Any:
 
 
 def _check_calibration(found: MotorBus, command: str) -> None:
-    """The bus's calibration file exists and calibrates exactly its motors."""
+    """The bus's calibration file exists and calibrates exactly its motors (for a device that keeps one)."""
+    if getattr(found.owner, "calibration_fpath", None) is None:
+        return
     path = Path(found.owner.calibration_fpath)
     arm = f"{found.prefix.rstrip('_')} arm's " if found.prefix else ""
     hint = f"calibrate it once with: {command}"

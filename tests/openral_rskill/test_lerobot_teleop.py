@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,14 +23,14 @@ pytest.importorskip("scservo_sdk", reason=LEROBOT_REASON)
 from click.testing import CliRunner  # noqa: E402
 
 from openral_cli.main import cli  # noqa: E402
-from openral_core import RobotManifest, ROSConfigError  # noqa: E402
+from openral_core import RobotEnvironment, RobotManifest, ROSConfigError, TickResult  # noqa: E402
 from openral_core.world import WorldState  # noqa: E402
 from openral_hal.feetech import protocol as p  # noqa: E402
 from openral_hal.feetech.emulator import ServoBusEmulator  # noqa: E402
 from openral_hal.feetech.protocol import Register  # noqa: E402
 from openral_hal.manifests import load_robot_manifest  # noqa: E402
 from openral_rskill.lerobot_teleop import LeRobotTeleopSkill  # noqa: E402
-from openral_runner.factory import SKILL_REGISTRY  # noqa: E402
+from openral_runner.factory import SKILL_REGISTRY, build_runner  # noqa: E402
 
 MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
 BODY_RANGE = (1000, 3100)
@@ -62,6 +63,19 @@ def expected_radians(robot: RobotManifest, ticks: dict[int, float]) -> list[floa
             degrees = (raw - sum(BODY_RANGE) / 2) * 360 / TICKS_PER_TURN
             out.append(math.radians(degrees))
     return out
+
+
+@pytest.fixture(autouse=True)
+def _emulator_answers_in_time() -> Iterator[None]:
+    """Let the in-process emulator's thread answer within the Feetech SDK's reply timeout (about 34 ms).
+
+    The SDK busy-waits for a reply, so the emulator's thread, which needs the interpreter a few times
+    per reply, gets it only at each thread switch (every 5 ms by default): too late on a loaded machine.
+    """
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-4)
+    yield
+    sys.setswitchinterval(interval)
 
 
 @pytest.fixture
@@ -287,3 +301,87 @@ def test_a_bimanual_leader_drives_each_arm_by_its_prefix(robot: RobotManifest, t
     assert action.targets[0] == pytest.approx(
         expected_radians(robot, POSE_A) + expected_radians(robot, POSE_B), abs=1e-9
     )
+
+
+def test_as_a_takeover_skill_its_errors_name_the_takeover_block(tmp_path: Path) -> None:
+    config = tmp_path / "takeover.yaml"
+    config.write_text(
+        "name: takeover\nrate_hz: 30\n"
+        "hal: {robot_id: so101_follower, adapter: so10x_follower, params: {emulate: true}}\n"
+        "vla: {id: hello}\n"
+        f"takeover: {{skill: lerobot_teleop, key: t, params: {{type: so101_leader, port: /dev/ttyACM7, id: arm_d, "
+        f"calibration_dir: {tmp_path}}}}}\n"
+    )
+    result = CliRunner().invoke(cli, ["validate", str(config)])
+    assert result.exit_code != 0
+    assert f"takeover.params.id: no LeRobot calibration file {tmp_path / 'arm_d.json'}" in result.output
+    assert "--teleop.id=arm_d" in result.output
+    write_calibration(tmp_path, "arm_d")
+    result = CliRunner().invoke(cli, ["validate", str(config)])
+    assert result.exit_code == 0, result.output
+
+
+class _Ticks:
+    """Keeps every tick the runner reports."""
+
+    def __init__(self) -> None:
+        self.ticks: list[TickResult] = []
+
+    def on_tick(self, tick: TickResult, world: WorldState | None) -> None:
+        self.ticks.append(tick)
+
+    def on_episode_start(self, episode_idx: int, task: str) -> None:
+        return
+
+    def on_episode_end(self, episode_idx: int, *, success: bool, keep: bool = True) -> None:
+        return
+
+    def close(self) -> None:
+        return
+
+
+def test_a_person_takes_over_with_a_lerobot_leader_and_the_follower_reaches_its_pose(
+    robot: RobotManifest, leader_bus: ServoBusEmulator, tmp_path: Path
+) -> None:
+    write_calibration(tmp_path, "leader")
+    leader_bus.play([(0.0, {**POSE_A, 5: 2300})])  # within the follower's roll limits
+    env = RobotEnvironment.model_validate(
+        {
+            "name": "takeover",
+            "rate_hz": 30,
+            "hal": {"robot_id": "so101_follower", "adapter": "so10x_follower", "params": {"emulate": True}},
+            "vla": {"id": "noop"},
+            "safety": {"client": "envelope", "mode": "reject"},
+            "takeover": {
+                "skill": "lerobot_teleop",
+                "params": {
+                    "type": "so101_leader",
+                    "port": leader_bus.port,
+                    "id": "leader",
+                    "calibration_dir": str(tmp_path),
+                },
+            },
+        }
+    )
+    runner, skill = build_runner(env)
+    seen = _Ticks()
+    runner.observers.append(seen)
+    assert runner.takeover is not None
+    skill.configure()
+    skill.activate()
+    runner.activate()
+    try:
+        runner.run(max_ticks=5)
+        runner.takeover.request(True)
+        runner.run(max_ticks=90)
+        runner.takeover.request(False)
+        runner.run(max_ticks=5)
+    finally:
+        runner.deactivate()
+        skill.shutdown()
+    assert [t.active_skill for t in seen.ticks] == ["noop"] * 5 + ["lerobot_teleop"] * 90 + ["noop"] * 5
+    assert all(t.action_applied for t in seen.ticks), [t.withheld_reason for t in seen.ticks if not t.action_applied]
+    # The ramp brought the follower to the leader's pose, which it then followed exactly.
+    assert not seen.ticks[94].handover_ramp
+    assert seen.ticks[94].sent_action == pytest.approx(expected_radians(robot, {**POSE_A, 5: 2300}), abs=1e-9)
+    assert not runner.takeover.skill.teleoperator.is_connected
