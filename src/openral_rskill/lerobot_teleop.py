@@ -24,28 +24,27 @@ presses) is refused: a joint-position follower has no principled use for them.
 from __future__ import annotations
 
 import contextlib
-import logging
-import shlex
 import time
-from collections.abc import Iterator, Mapping
-from pathlib import Path
+from collections.abc import Mapping
 from typing import Any, Self
 
 import numpy as np
+import structlog
 
 from openral_core.actions import Action, ControlMode
 from openral_core.errors import ROSConfigError
 from openral_core.robot import RobotManifest
 from openral_core.skills import RSkillInfo
 from openral_core.world import WorldState
-from openral_hal.lerobot.device_config import build_device_config, known_types, require_lerobot
-from openral_hal.lerobot.motors import POSITION_SUFFIX, MotorBus, motor_buses, position_norms
+from openral_hal.lerobot.calibration import require_calibration, write_calibration_where_it_differs
+from openral_hal.lerobot.device_config import build_device_config, known_types, make_device, require_lerobot
+from openral_hal.lerobot.motors import POSITION_SUFFIX, motor_buses, position_norms
 from openral_hal.lerobot.units import UnitConversion
 from openral_rskill.base import RSkillBase
 
 SKILL_ID = "lerobot_teleop"
 FIELD = "vla.params"
-_LOG = logging.getLogger(__name__)
+_LOG = structlog.get_logger(__name__)
 
 
 class LeRobotTeleopSkill(RSkillBase):
@@ -106,11 +105,9 @@ class LeRobotTeleopSkill(RSkillBase):
                 hint=f"known: {', '.join(known_types('teleoperator'))}",
             )
         config = build_device_config("teleoperator", type_name, device_params, field=FIELD)
-        teleoperator = _make_teleoperator(config, type_name)
+        teleoperator = make_device("teleoperator", config, field=FIELD)
         keys, norms = _joint_keys(teleoperator, type_name, robot)
-        command = calibrate_command(type_name, device_params)
-        for found in motor_buses(teleoperator):
-            _check_calibration(found, command)
+        require_calibration(teleoperator, kind="teleop", type_name=type_name, params=device_params, field=FIELD)
         return cls(robot, teleoperator, type_name=type_name, keys=keys, conversion=UnitConversion(robot, norms))
 
     @property
@@ -121,10 +118,9 @@ class LeRobotTeleopSkill(RSkillBase):
     def _on_activate(self) -> None:
         try:
             self.teleoperator.connect(calibrate=False)
-            for found in motor_buses(self.teleoperator):
-                if getattr(found.owner, "calibration", None) and not found.bus.is_calibrated:
-                    _LOG.info("writing %s to the motors of %s", found.owner.calibration_fpath, found.owner)
-                    found.bus.write_calibration(found.owner.calibration)
+            written = write_calibration_where_it_differs(self.teleoperator)
+            if written:
+                _LOG.info("lerobot_calibration_written", teleoperator=self.type_name, arms=written)
         except BaseException:
             self._release()
             raise
@@ -154,57 +150,6 @@ class LeRobotTeleopSkill(RSkillBase):
             targets=[self.conversion.to_radians(values).tolist()],
             stamp_ns=stamp,
             skill_id=SKILL_ID,
-        )
-
-
-def calibrate_command(type_name: str, params: Mapping[str, Any]) -> str:
-    """The ``lerobot-calibrate`` command that writes the calibration files of this teleoperator's params."""
-    flags = [f"--teleop.type={shlex.quote(type_name)}"]
-    flags += [f"--teleop.{key}={shlex.quote(str(value))}" for key, value in _flat(params)]
-    return " ".join(["lerobot-calibrate", *flags])
-
-
-def _flat(params: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
-    for key, value in params.items():
-        if isinstance(value, Mapping):
-            yield from _flat(value, f"{prefix}{key}.")
-        elif value is not None:
-            yield f"{prefix}{key}", value
-
-
-def _make_teleoperator(config: Any, type_name: str) -> Any:
-    """LeRobot's teleoperator for ``config``, by LeRobot's factory (no port is opened)."""
-    from lerobot.teleoperators.utils import make_teleoperator_from_config  # noqa: PLC0415  (the extra)
-
-    try:
-        return make_teleoperator_from_config(config)
-    except ImportError as exc:
-        raise ROSConfigError(
-            f"LeRobot's '{type_name}' teleoperator cannot be built here: {exc}",
-            field=f"{FIELD}.type",
-            hint=f"install the package that provides '{exc.name}'" if exc.name else None,
-        ) from exc
-    except Exception as exc:  # LeRobot's constructors refuse with any exception type
-        raise ROSConfigError(f"LeRobot refuses to build the '{type_name}' teleoperator: {exc}", field=FIELD) from exc
-
-
-def _check_calibration(found: MotorBus, command: str) -> None:
-    """The bus's calibration file exists and calibrates exactly its motors (for a device that keeps one)."""
-    if getattr(found.owner, "calibration_fpath", None) is None:
-        return
-    path = Path(found.owner.calibration_fpath)
-    arm = f"{found.prefix.rstrip('_')} arm's " if found.prefix else ""
-    hint = f"calibrate it once with: {command}"
-    if not path.is_file():
-        raise ROSConfigError(
-            f"no LeRobot calibration file {path} for the teleoperator's {arm}motors", field=f"{FIELD}.id", hint=hint
-        )
-    calibrated, motors = sorted(found.owner.calibration), sorted(found.bus.motors)
-    if calibrated != motors:
-        raise ROSConfigError(
-            f"the calibration file {path} calibrates motors {calibrated}; the teleoperator's {arm}motors are {motors}",
-            field=f"{FIELD}.id",
-            hint=hint,
         )
 
 

@@ -129,3 +129,26 @@ def _decoding_error(exc: Exception) -> tuple[tuple[str, ...], str]:
     if len(args) == 2 and isinstance(args[0], tuple):
         return tuple(str(part) for part in args[0]), str(args[1]).strip()
     return (), str(exc).strip()
+
+
+def make_device(kind: Literal["robot", "teleoperator"], config: Any, *, field: str) -> Any:
+    """LeRobot's robot or teleoperator for ``config``, by LeRobot's own factory; no port is opened.
+
+    Raises:
+        ROSConfigError: LeRobot cannot build it here (a missing SDK is named) or refuses the config.
+    """
+    if kind == "robot":
+        from lerobot.robots.utils import make_robot_from_config as make  # noqa: PLC0415  (the extra)
+    else:
+        from lerobot.teleoperators.utils import make_teleoperator_from_config as make  # noqa: PLC0415
+
+    try:
+        return make(config)
+    except ImportError as exc:
+        raise ROSConfigError(
+            f"LeRobot's '{config.type}' {kind} cannot be built here: {exc}",
+            field=f"{field}.type",
+            hint=f"install the package that provides '{exc.name}'" if exc.name else None,
+        ) from exc
+    except Exception as exc:  # LeRobot's constructors refuse with any exception type
+        raise ROSConfigError(f"LeRobot refuses to build the '{config.type}' {kind}: {exc}", field=field) from exc

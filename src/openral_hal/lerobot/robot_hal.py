@@ -46,7 +46,7 @@ from openral_hal.feetech import protocol as feetech
 from openral_hal.feetech.protocol import Register
 from openral_hal.joints import JointIndex
 from openral_hal.lerobot.calibration import require_calibration, write_calibration_where_it_differs
-from openral_hal.lerobot.device_config import build_device_config
+from openral_hal.lerobot.device_config import build_device_config, make_device
 from openral_hal.lerobot.motors import POSITION_SUFFIX, motor_buses, position_norms
 from openral_hal.lerobot.ports import PortLocks
 from openral_hal.lerobot.units import JointUnits, MotorNorm, UnitConversion, arm_norms
@@ -97,7 +97,7 @@ class LeRobotRobotHAL:
         self.type_name = options.type
         self.config = build_device_config("robot", options.type, lerobot_params, field=FIELD)
         _refuse_cameras(self.config, options.type)
-        self.robot = _make_robot(self.config)
+        self.robot = make_device("robot", self.config, field=FIELD)
         self.keys = _position_keys(self.robot, manifest, options.type)
         self.units = UnitConversion(manifest, _norms(self.robot, manifest, self.keys, options.joint_units))
         require_calibration(self.robot, kind="robot", type_name=options.type, params=lerobot_params, field=FIELD)
@@ -239,15 +239,6 @@ class LeRobotRobotHAL:
                 if found.bus.is_connected:
                     found.bus.port_handler.closePort()
         self._locks.release()
-
-
-def _make_robot(config: Any) -> Any:
-    from lerobot.robots.utils import make_robot_from_config  # noqa: PLC0415  (the extra)
-
-    try:
-        return make_robot_from_config(config)
-    except (TypeError, ValueError, ImportError) as exc:
-        raise ROSConfigError(f"LeRobot cannot build robot '{config.type}': {exc}", field=FIELD) from exc
 
 
 def _refuse_cameras(config: Any, type_name: str) -> None:
