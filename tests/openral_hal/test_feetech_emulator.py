@@ -131,10 +131,13 @@ def test_an_eeprom_write_under_lock_1_is_lost_at_power_off(bus: FeetechBus, emu:
     _write(bus, 1, Register.LOCK, 1)
     _write(bus, 1, Register.P_COEFFICIENT, 16)
     assert _read(bus, 1, Register.P_COEFFICIENT) == 16  # in effect at once
+    _write(bus, 1, Register.LOCK, 0)
+    _write(bus, 1, Register.D_COEFFICIENT, 20)  # saves this byte, not the earlier unsaved one
     _write(bus, 2, Register.P_COEFFICIENT, 20)  # Lock 0: saved
     _write(bus, 2, Register.TORQUE_ENABLE, 1)
     emu.power_cycle()
     assert _read(bus, 1, Register.P_COEFFICIENT) == 32
+    assert _read(bus, 1, Register.D_COEFFICIENT) == 20
     assert _read(bus, 2, Register.P_COEFFICIENT) == 20
     assert emu.torque() == dict.fromkeys(IDS, False)
     assert _read(bus, 1, Register.LOCK) == 0
@@ -188,6 +191,12 @@ def test_a_written_id_moves_the_servo_to_it(bus: FeetechBus, emu: ServoBusEmulat
     assert sorted(emu.servos) == [1, 2, 7]
     _write(bus, 7, Register.ID, 1)  # taken: the emulator keeps one servo per id
     assert sorted(emu.servos) == [1, 2, 7]
+    assert _read(bus, 7, Register.ID) == 7
+    _write(bus, 2, Register.LOCK, 1)
+    _write(bus, 2, Register.ID, 9)  # in effect, but not saved
+    bus.ping(9)
+    emu.power_cycle()
+    assert bus.find([2, 7, 9]) == [9]
 
 
 def test_servos_configured_earlier_start_with_their_registers() -> None:

@@ -239,11 +239,13 @@ def test_a_goal_beyond_the_calibrated_limit_stops_at_the_limit(arm: ServoBusEmul
         goal = _goal_ticks("shoulder_pan", 170.0)
         assert goal > high
         _wait_for(lambda: arm.goals()[1] == goal, "the goal to arrive")  # SYNC_WRITE gets no reply
-        _wait_for(lambda: robot.bus.read("Moving", "shoulder_pan", normalize=False) == 0, "the joint to stop")
+        _wait_for(
+            lambda: robot.bus.read("Moving", "shoulder_pan", normalize=False, num_retry=5) == 0, "the joint to stop"
+        )
         assert arm.positions()[1] == high
         robot.send_action({"shoulder_pan.pos": -170.0})
         _wait_for(lambda: arm.positions()[1] == low, "the joint to reach its lower limit")
-        assert robot.bus.read("Moving", "shoulder_pan", normalize=False) == 0
+        assert robot.bus.read("Moving", "shoulder_pan", normalize=False, num_retry=5) == 0
     finally:
         robot.disconnect()
 
@@ -289,3 +291,17 @@ def test_the_leader_follows_a_trajectory_played_on_its_servos(arm: ServoBusEmula
         assert len(set(pan)) > 2
     finally:
         leader.disconnect()
+
+
+def test_motor_setup_finds_a_lone_factory_servo_by_broadcast_and_gives_it_its_id() -> None:
+    with ServoBusEmulator([1]) as emu:  # a new servo answers at the factory id 1
+        bus = FeetechMotorsBus(port=emu.port, motors={"gripper": Motor(6, "sts3215", MotorNormMode.RANGE_0_100)})
+        bus.setup_motor("gripper")  # what lerobot-setup-motors does for each motor in turn
+        try:
+            assert sorted(emu.servos) == [6]
+            assert bus.ping("gripper") == 777
+            assert emu.servos[6].register(Register.BAUD_RATE) == 0  # 1 Mbit/s
+            emu.power_cycle()  # written after LeRobot's torque-off unlocked the EEPROM: kept
+            assert bus.ping("gripper") == 777
+        finally:
+            bus.port_handler.closePort()

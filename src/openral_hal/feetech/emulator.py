@@ -22,10 +22,13 @@ What the servo does with its registers, as on the STS3215:
   clamp, and the goal is an absolute position over several turns. Other modes hold still.
 * Writes to EEPROM (addresses 5..39) take effect at once; with Lock 0 they are also kept over
   :meth:`ServoBusEmulator.power_cycle`, with Lock 1 they are lost there. Lock powers up 0. The
-  read-only version and feedback bytes ignore writes. Writing ID moves the servo to the new id.
+  read-only version and feedback bytes ignore writes. Writing ID moves the servo to the new id
+  (one another servo has is undone: the emulator holds one servo per id).
 * Response_Status_Level 0 answers only READ and PING. A broadcast PING (id 0xFE) is answered by
   every servo, in id order; other broadcasts are executed and answered by none.
 
+Torque on drives to the Goal_Position register as it stands (at power-on: the present position),
+so a client that moved the goal, or a hand that moved a torque-off servo, sees it travel.
 Not modelled: baud rate and return delay (the pty carries any), acceleration ramps, PID
 dynamics, load, current and the protections.
 
@@ -97,15 +100,17 @@ FACTORY_REGISTERS: dict[Register, int] = {
 }
 """An STS3215 as it leaves the factory (the id aside), value per register.
 
-Sources: Feetech's SMS/STS memory table ("Magnetic Encoder STS Servo" memory table: baud rate 0
-= 1 Mbit/s, response level 1, angle limits 0 and 4095, temperature limit 70 C, the voltage
-limits of the 7.4 V STS3215-C001, torque limit 1000 = 100 %, protection current, overload and
-protective torque, the Phase bits: bit 2 speed in steps/s, bit 3 speed 0 = top speed, bit 4
-clear = single-turn feedback; Lock 0), LeRobot's ``lerobot.motors.feetech`` (firmware 3.10, the
-version its SO-101 documentation requires; model number 777; Return_Delay_Time 250 = 500 us and
-P/D/I 32/32/0, the defaults its ``configure_motors`` and ``SOFollower.configure`` comments name).
-Maximum_Acceleration lies in the factory area the memory table does not publish: 0 here. The
-present voltage and temperature are an idle servo on a 7.4 V supply.
+Sources: Feetech's SMS/STS memory table (the "Magnetic Encoder STS Servo" memory table, as
+Feetech's distributors publish it): baud rate 0 = 1 Mbit/s, response level 1, angle limits 0 and
+4095 (both 0 = multi-turn), temperature limit 70 C, and the Phase bits (bit 2: speed in steps/s,
+bit 3: speed 0 = top speed, bit 4 clear: single-turn feedback). LeRobot's ``lerobot.motors.feetech``
+and robots: model number 777, firmware 3.10 (the version LeRobot's users report the SO-101
+needs), Return_Delay_Time 250 = 500 us (``configure_motors``), P/D/I 32/32/0 (the defaults
+LeKiwi's ``configure`` names). The protection values (voltage limits of the 7.4 V STS3215-C001,
+torque limit 1000 = 100 %, protection current, overload and protective torque, alarm conditions)
+are plausible STS3215 values the emulator reads back but does not act on. Maximum_Acceleration
+lies in the factory area the memory table does not publish: 0 here. The present voltage and
+temperature are an idle servo on a 7.4 V supply.
 """
 
 
@@ -139,7 +144,7 @@ class EmulatedServo:
         self.max_speed = speed_ticks_s
         self.position = float(position)
         self.speed = 0.0
-        self._saved = bytes(self.memory[_EEPROM.start : _EEPROM.stop])
+        self._saved = bytearray(self.memory[_EEPROM.start : _EEPROM.stop])
         self.power_on()
 
     # -- registers ------------------------------------------------------------------------------
@@ -154,14 +159,19 @@ class EmulatedServo:
         self.memory[register : register + p.register_size(register)] = p.encode_register(register, value)
 
     def write(self, address: int, data: bytes) -> None:
-        """A WRITE from the bus: read-only bytes are ignored, EEPROM is persisted while Lock is 0."""
+        """A WRITE from the bus: read-only bytes are ignored, EEPROM bytes are also saved while Lock is 0."""
+        save = self.memory[Register.LOCK] == 0
         for offset, byte in enumerate(data):
             at = address + offset
             if at < len(self.memory) and not any(at in block for block in _READ_ONLY):
                 self.memory[at] = byte
-        if self.memory[Register.LOCK] == 0 and address < _EEPROM.stop and address + len(data) > _EEPROM.start:
-            self._saved = bytes(self.memory[_EEPROM.start : _EEPROM.stop])
+                if save and at in _EEPROM:
+                    self._saved[at - _EEPROM.start] = byte
         self.advance(0.0)
+
+    def keep_id(self) -> None:
+        """Undo a write of the ID register (in SRAM and in the saved EEPROM)."""
+        self.memory[Register.ID] = self._saved[Register.ID - _EEPROM.start] = self.servo_id
 
     def power_on(self) -> None:
         """Reload EEPROM as saved, SRAM as at power-on; the shaft keeps its angle, not its turn count."""
@@ -363,8 +373,9 @@ class ServoBusEmulator:
         """Switch the servos off and on: EEPROM as last saved under Lock 0, SRAM as at power-on (torque off)."""
         with self._lock:
             self._advance()
-            for servo in self.servos.values():
+            for servo in list(self.servos.values()):
                 servo.power_on()
+                self._follow_id(servo)
 
     def play(self, trajectory: Sequence[tuple[float, Mapping[int, int]]], *, loop: bool = True) -> None:
         """Move the torque-off servos along ``trajectory`` (seconds from now, encoder ticks by id), as a hand would.
@@ -500,9 +511,12 @@ class ServoBusEmulator:
         return out
 
     def _follow_id(self, servo: EmulatedServo) -> None:
-        """A servo whose ID register was written answers at the new id (unless another servo has it)."""
+        """A servo whose ID register was written answers at the new id; an id in use or out of range is undone."""
         new_id = servo.memory[Register.ID]
-        if new_id == servo.servo_id or new_id > p.MAX_ID or new_id in self.servos:
+        if new_id == servo.servo_id:
+            return
+        if new_id > p.MAX_ID or new_id in self.servos:
+            servo.keep_id()
             return
         del self.servos[servo.servo_id]
         servo.servo_id = new_id

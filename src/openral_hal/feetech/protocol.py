@@ -154,10 +154,12 @@ def encode_register(register: Register, value: int) -> bytes:
     Raises:
         ValueError: The value does not fit the register.
     """
-    raw = encode_sign_magnitude(value, SIGN_BITS[register]) if register in SIGN_BITS else value
     size = register_size(register)
-    if not 0 <= raw < 1 << (8 * size):
+    sign_bit = SIGN_BITS.get(register)
+    fits = abs(value) < 1 << sign_bit if sign_bit is not None else 0 <= value < 1 << (8 * size)
+    if not fits:
         raise ValueError(f"{value} does not fit the {size}-byte register {register.name}")
+    raw = encode_sign_magnitude(value, sign_bit) if sign_bit is not None else value
     return u16(raw) if size == 2 else bytes((raw,))
 
 
