@@ -7,6 +7,7 @@ Needs the ``lerobot`` extra (Python 3.12 or newer) and its Feetech SDK. Every ro
 from __future__ import annotations
 
 import json
+import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -91,6 +92,20 @@ def _wait_for(condition: Callable[[], bool], what: str, timeout_s: float = 10.0)
         time.sleep(0.01)
 
 
+@pytest.fixture(autouse=True)
+def _quick_thread_switches() -> Iterator[None]:
+    """Let the emulator's thread answer within LeRobot's 50 ms reply deadline on a busy machine.
+
+    A real servo answers from its own chip; here it shares the interpreter with the Feetech SDK,
+    which polls the port in a busy loop while it waits, holding the GIL for a switch interval at a
+    time. Shorter switch intervals hand the emulator the GIL sooner.
+    """
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(0.0005)
+    yield
+    sys.setswitchinterval(interval)
+
+
 @pytest.fixture
 def arm() -> Iterator[ServoBusEmulator]:
     """A calibrated SO-101 arm on the emulated bus, in the pose that reads 2047 on every joint."""
@@ -98,14 +113,33 @@ def arm() -> Iterator[ServoBusEmulator]:
         yield emu
 
 
+def _patient(bus: FeetechMotorsBus) -> FeetechMotorsBus:
+    """Wait up to 0.5 s for each reply instead of LeRobot's 50 ms.
+
+    A real servo answers within a millisecond from its own chip; the emulator's thread shares this
+    process, and the machine, with the SDK's busy wait and other test runs, so it may be scheduled
+    late. The requests and replies are unchanged.
+    """
+    handler = bus.port_handler
+
+    def set_packet_timeout(packet_length: int) -> None:
+        handler.packet_start_time = handler.getCurrentTime()
+        handler.packet_timeout = handler.tx_time_per_byte * (packet_length + 3) + 500
+
+    handler.setPacketTimeout = set_packet_timeout
+    return bus
+
+
 def _bus(port: str, calibration: dict[str, MotorCalibration] | None = None) -> FeetechMotorsBus:
     motors = {name: Motor(i, "sts3215", MotorNormMode.DEGREES) for name, i in IDS.items()}
-    return FeetechMotorsBus(port=port, motors=motors, calibration=calibration)
+    return _patient(FeetechMotorsBus(port=port, motors=motors, calibration=calibration))
 
 
 def _follower(port: str, folder: Path) -> SO101Follower:
     _calibration_file(folder, "emulated_follower")
-    return SO101Follower(SO101FollowerConfig(port=port, id="emulated_follower", calibration_dir=folder))
+    robot = SO101Follower(SO101FollowerConfig(port=port, id="emulated_follower", calibration_dir=folder))
+    _patient(robot.bus)
+    return robot
 
 
 # -- the motor bus --------------------------------------------------------------------------------
@@ -270,6 +304,7 @@ def _leader_action(present: Mapping[int, int]) -> dict[str, float]:
 def test_the_leader_follows_a_trajectory_played_on_its_servos(arm: ServoBusEmulator, tmp_path: Path) -> None:
     _calibration_file(tmp_path, "emulated_leader")
     leader = SO101Leader(SO101LeaderConfig(port=arm.port, id="emulated_leader", calibration_dir=tmp_path))
+    _patient(leader.bus)
     leader.connect(calibrate=False)
     try:
         assert leader.is_calibrated
@@ -295,7 +330,9 @@ def test_the_leader_follows_a_trajectory_played_on_its_servos(arm: ServoBusEmula
 
 def test_motor_setup_finds_a_lone_factory_servo_by_broadcast_and_gives_it_its_id() -> None:
     with ServoBusEmulator([1]) as emu:  # a new servo answers at the factory id 1
-        bus = FeetechMotorsBus(port=emu.port, motors={"gripper": Motor(6, "sts3215", MotorNormMode.RANGE_0_100)})
+        bus = _patient(
+            FeetechMotorsBus(port=emu.port, motors={"gripper": Motor(6, "sts3215", MotorNormMode.RANGE_0_100)})
+        )
         bus.setup_motor("gripper")  # what lerobot-setup-motors does for each motor in turn
         try:
             assert sorted(emu.servos) == [6]
