@@ -65,3 +65,24 @@ def test_sign_magnitude_roundtrip(value: int, raw: int) -> None:
 def test_resolution() -> None:
     assert p.TICKS_PER_REV == 4096
     assert pytest.approx(2 * 3.141592653589793) == p.RAD_PER_TICK * 4096
+
+
+@pytest.mark.parametrize(
+    ("register", "value", "data"),
+    [
+        (p.Register.HOMING_OFFSET, -1000, bytes((0xE8, 0x0B))),  # sign bit 11
+        (p.Register.HOMING_OFFSET, 2047, bytes((0xFF, 0x07))),
+        (p.Register.GOAL_POSITION, -300, bytes((0x2C, 0x81))),  # sign bit 15
+        (p.Register.MAX_POSITION_LIMIT, 4095, bytes((0xFF, 0x0F))),
+        (p.Register.PHASE, 0x1C, bytes((0x1C,))),
+    ],
+)
+def test_register_encoding_roundtrip(register: p.Register, value: int, data: bytes) -> None:
+    assert p.encode_register(register, value) == data
+    assert p.decode_register(register, data) == value
+
+
+@pytest.mark.parametrize(("register", "value"), [(p.Register.HOMING_OFFSET, 2048), (p.Register.PHASE, 256)])
+def test_a_value_that_does_not_fit_its_register_is_refused(register: p.Register, value: int) -> None:
+    with pytest.raises(ValueError, match=register.name):
+        p.encode_register(register, value)

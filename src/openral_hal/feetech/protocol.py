@@ -7,10 +7,15 @@ Pure Python, no I/O. Every packet, in both directions, is framed the same way::
 ``LEN`` counts ``CODE``, the parameters and the checksum (``len(params) + 2``). ``CODE`` is the
 instruction in a request and the servo's error byte in a status reply. The checksum is
 ``~(ID + LEN + CODE + sum(params)) & 0xFF``. Multi-byte registers are little-endian; the STS
-series stores present position and speed in sign-magnitude with the sign in bit 15.
+series stores signed registers in sign-magnitude (:data:`SIGN_BITS`: bit 15 for positions and
+speeds, bit 11 for the homing offset, bit 10 for the load). A request to ``BROADCAST_ID`` is
+executed by every servo and answered by none, except PING, which every servo answers.
 
 Sources: Feetech's SCServo SDK (``scservo_sdk``: instruction codes, SYNC_READ/SYNC_WRITE layout,
-error bits) and its ``SMS_STS`` control table, as used by LeRobot's Feetech motor bus.
+error bits), Feetech's SMS/STS memory table (the "Magnetic Encoder STS Servo" memory table:
+addresses, sizes, the meaning of the Phase and Lock bytes) and LeRobot's ``STS_SMS_SERIES_CONTROL_TABLE``
+and ``STS_SMS_SERIES_ENCODINGS_TABLE`` (``lerobot.motors.feetech.tables``), whose register names
+:class:`Register` follows.
 """
 
 from __future__ import annotations
@@ -53,29 +58,115 @@ class ServoError(IntFlag):
 
 
 class Register(IntEnum):
-    """STS3215 (SMS/STS series) control table addresses used here."""
+    """STS3215 (SMS/STS series) control table addresses (one byte unless marked).
 
-    MODEL_NUMBER = 3  # 2 bytes, read-only EEPROM
-    ID = 5
+    0..4 are read-only version bytes, 5..39 EEPROM configuration, 40..55 SRAM control, 56..70
+    read-only SRAM feedback, 80.. factory parameters.
+    """
+
+    FIRMWARE_MAJOR_VERSION = 0  # read-only
+    FIRMWARE_MINOR_VERSION = 1  # read-only
+    MODEL_NUMBER = 3  # 2 bytes, read-only ("servo main/sub version")
+    ID = 5  # EEPROM from here
     BAUD_RATE = 6
-    RETURN_DELAY = 7
+    RETURN_DELAY = 7  # Return_Delay_Time, 2 us units
+    RESPONSE_STATUS_LEVEL = 8  # 0: only READ and PING are answered
     MIN_POSITION_LIMIT = 9  # 2 bytes
     MAX_POSITION_LIMIT = 11  # 2 bytes
-    HOMING_OFFSET = 31  # 2 bytes, sign bit 11
-    OPERATING_MODE = 33
+    MAX_TEMPERATURE_LIMIT = 13
+    MAX_VOLTAGE_LIMIT = 14  # 0.1 V
+    MIN_VOLTAGE_LIMIT = 15  # 0.1 V
+    MAX_TORQUE_LIMIT = 16  # 2 bytes, 0.1 %
+    PHASE = 18  # bit 4: 0 single-turn position feedback, 1 full-angle feedback
+    UNLOADING_CONDITION = 19
+    LED_ALARM_CONDITION = 20
+    P_COEFFICIENT = 21
+    D_COEFFICIENT = 22
+    I_COEFFICIENT = 23
+    MINIMUM_STARTUP_FORCE = 24  # 2 bytes
+    CW_DEAD_ZONE = 26
+    CCW_DEAD_ZONE = 27
+    PROTECTION_CURRENT = 28  # 2 bytes, 6.5 mA
+    ANGULAR_RESOLUTION = 30
+    HOMING_OFFSET = 31  # 2 bytes, sign bit 11 (the datasheet's "position correction")
+    OPERATING_MODE = 33  # 0 position, 1 velocity, 2 PWM, 3 step
+    PROTECTIVE_TORQUE = 34
+    PROTECTION_TIME = 35
+    OVERLOAD_TORQUE = 36
     TORQUE_ENABLE = 40  # SRAM from here
     ACCELERATION = 41
-    GOAL_POSITION = 42  # 2 bytes
+    GOAL_POSITION = 42  # 2 bytes, sign bit 15
     GOAL_TIME = 44  # 2 bytes
-    GOAL_SPEED = 46  # 2 bytes
-    LOCK = 55
+    GOAL_SPEED = 46  # 2 bytes, sign bit 15
+    TORQUE_LIMIT = 48  # 2 bytes
+    LOCK = 55  # 0: EEPROM writes are kept over a power cycle; 1: they are not
     PRESENT_POSITION = 56  # 2 bytes, sign bit 15
     PRESENT_SPEED = 58  # 2 bytes, sign bit 15, ticks/s
-    PRESENT_LOAD = 60  # 2 bytes
-    PRESENT_VOLTAGE = 62
+    PRESENT_LOAD = 60  # 2 bytes, sign bit 10
+    PRESENT_VOLTAGE = 62  # 0.1 V
     PRESENT_TEMPERATURE = 63
+    STATUS = 65
     MOVING = 66
     PRESENT_CURRENT = 69  # 2 bytes
+    MAXIMUM_ACCELERATION = 85  # factory area
+
+
+WORD_REGISTERS = frozenset(
+    {
+        Register.MODEL_NUMBER,
+        Register.MIN_POSITION_LIMIT,
+        Register.MAX_POSITION_LIMIT,
+        Register.MAX_TORQUE_LIMIT,
+        Register.MINIMUM_STARTUP_FORCE,
+        Register.PROTECTION_CURRENT,
+        Register.HOMING_OFFSET,
+        Register.GOAL_POSITION,
+        Register.GOAL_TIME,
+        Register.GOAL_SPEED,
+        Register.TORQUE_LIMIT,
+        Register.PRESENT_POSITION,
+        Register.PRESENT_SPEED,
+        Register.PRESENT_LOAD,
+        Register.PRESENT_CURRENT,
+    }
+)
+"""The two-byte registers; every other :class:`Register` is one byte."""
+
+SIGN_BITS: dict[Register, int] = {
+    Register.HOMING_OFFSET: 11,
+    Register.GOAL_POSITION: 15,
+    Register.GOAL_SPEED: 15,
+    Register.PRESENT_POSITION: 15,
+    Register.PRESENT_SPEED: 15,
+    Register.PRESENT_LOAD: 10,
+}
+"""Sign-magnitude registers and their sign bit (LeRobot's ``STS_SMS_SERIES_ENCODINGS_TABLE``)."""
+
+
+def register_size(register: Register) -> int:
+    """Bytes the register occupies (1 or 2)."""
+    return 2 if register in WORD_REGISTERS else 1
+
+
+def encode_register(register: Register, value: int) -> bytes:
+    """The bytes to write for ``value`` (sign-magnitude where the register is signed).
+
+    Raises:
+        ValueError: The value does not fit the register.
+    """
+    size = register_size(register)
+    sign_bit = SIGN_BITS.get(register)
+    fits = abs(value) < 1 << sign_bit if sign_bit is not None else 0 <= value < 1 << (8 * size)
+    if not fits:
+        raise ValueError(f"{value} does not fit the {size}-byte register {register.name}")
+    raw = encode_sign_magnitude(value, sign_bit) if sign_bit is not None else value
+    return u16(raw) if size == 2 else bytes((raw,))
+
+
+def decode_register(register: Register, data: bytes | bytearray) -> int:
+    """The value of ``register`` from the bytes read at its address (inverse of :func:`encode_register`)."""
+    raw = from_u16(data) if register_size(register) == 2 else data[0]
+    return decode_sign_magnitude(raw, SIGN_BITS[register]) if register in SIGN_BITS else raw
 
 
 class PacketError(Exception):
