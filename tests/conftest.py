@@ -393,3 +393,18 @@ def installed_package(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Inst
     packages = InstalledPackages(tmp_path_factory.mktemp("site-packages"))
     yield packages
     packages.remove()
+
+
+@pytest.fixture
+def quick_thread_switches() -> Iterator[None]:
+    """Let an emulated device on a thread of this process answer LeRobot's Feetech SDK in time.
+
+    A real servo answers from its own chip within a millisecond; the emulator's thread shares this
+    interpreter with the SDK, which busy-waits for each reply (tens of ms) and so holds the GIL a
+    whole switch interval (5 ms by default) at a time: on a loaded machine the reply comes too late.
+    Shorter switch intervals hand the emulator the interpreter sooner; requests and replies are unchanged.
+    """
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-4)
+    yield
+    sys.setswitchinterval(interval)

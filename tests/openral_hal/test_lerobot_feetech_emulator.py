@@ -7,13 +7,14 @@ Needs the ``lerobot`` extra (Python 3.12 or newer) and its Feetech SDK. Every ro
 from __future__ import annotations
 
 import json
-import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import pytest
+
+pytestmark = pytest.mark.usefixtures("quick_thread_switches")
 
 LEROBOT_REASON = "needs the 'lerobot' extra, which installs on Python 3.12 or newer (lerobot 0.6)"
 
@@ -90,20 +91,6 @@ def _wait_for(condition: Callable[[], bool], what: str, timeout_s: float = 10.0)
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.01)
-
-
-@pytest.fixture(autouse=True)
-def _quick_thread_switches() -> Iterator[None]:
-    """Let the emulator's thread answer within LeRobot's 50 ms reply deadline on a busy machine.
-
-    A real servo answers from its own chip; here it shares the interpreter with the Feetech SDK,
-    which polls the port in a busy loop while it waits, holding the GIL for a switch interval at a
-    time. Shorter switch intervals hand the emulator the GIL sooner.
-    """
-    interval = sys.getswitchinterval()
-    sys.setswitchinterval(0.0005)
-    yield
-    sys.setswitchinterval(interval)
 
 
 @pytest.fixture

@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+
+pytestmark = pytest.mark.usefixtures("quick_thread_switches")
 
 LEROBOT_REASON = "needs the 'lerobot' extra, which installs on Python 3.12 or newer (lerobot 0.6)"
 
@@ -63,19 +64,6 @@ def expected_radians(robot: RobotManifest, ticks: dict[int, float]) -> list[floa
             degrees = (raw - sum(BODY_RANGE) / 2) * 360 / TICKS_PER_TURN
             out.append(math.radians(degrees))
     return out
-
-
-@pytest.fixture(autouse=True)
-def _emulator_answers_in_time() -> Iterator[None]:
-    """Let the in-process emulator's thread answer within the Feetech SDK's reply timeout (about 34 ms).
-
-    The SDK busy-waits for a reply, so the emulator's thread, which needs the interpreter a few times
-    per reply, gets it only at each thread switch (every 5 ms by default): too late on a loaded machine.
-    """
-    interval = sys.getswitchinterval()
-    sys.setswitchinterval(1e-4)
-    yield
-    sys.setswitchinterval(interval)
 
 
 @pytest.fixture
