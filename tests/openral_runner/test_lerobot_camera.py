@@ -57,7 +57,7 @@ CODES = 25
 class Publisher:
     """A ZeroMQ PUB socket sending LeRobot's JSON frames (base64 JPEG from LeRobot's encoder) at a steady rate."""
 
-    def __init__(self, *, camera_name: str = "cam", rate_hz: float = 50.0) -> None:
+    def __init__(self, *, camera_name: str = "cam", rate_hz: float = 30.0) -> None:
         self.camera_name = camera_name
         self.period_s = 1.0 / rate_hz
         self.context = zmq.Context()
@@ -206,7 +206,7 @@ def test_a_silent_publisher_makes_the_sensor_stale_then_failed_and_it_still_clos
         with pytest.raises(ROSRuntimeError, match="no frame in 2 reads in a row") as failed:
             reader.read_latest(max_age_ms=float("inf"))
         assert not isinstance(failed.value, ROSPerceptionStale)
-        assert reader.report()["read_failures"] == 2
+        assert reader.report()["read_failures"] >= 2
     finally:
         started = time.monotonic()
         reader.close()
@@ -262,7 +262,7 @@ def test_lerobot_opencv_camera_reads_a_video_file_to_its_end_then_the_sensor_fai
     image[:240, 320:] = BLUE[::-1]
     image[240:] = rng.integers(0, 256, (240, 640, 3), dtype=np.uint8)  # slows decoding down to a few ms
     writer = cv2.VideoWriter(str(tmp_path / "clip.avi"), cv2.VideoWriter.fourcc(*"MJPG"), 30, (640, 480))
-    for _ in range(100):
+    for _ in range(200):
         writer.write(image)
     writer.release()
     config = SensorReaderConfig.model_validate(
@@ -287,7 +287,7 @@ def test_lerobot_opencv_camera_reads_a_video_file_to_its_end_then_the_sensor_fai
             reader._slot.wait_for_frame(newer_than_ns=time.monotonic_ns(), deadline_ns=time.monotonic_ns() + 50_000_000)
         with pytest.raises(ROSRuntimeError, match="no frame in 3 reads in a row"):
             reader.read_latest(max_age_ms=float("inf"))
-        assert 1 <= reader.frames_published <= 100
+        assert 1 <= reader.frames_published <= 200
     finally:
         reader.close()
     assert lerobot_threads() == []
@@ -423,16 +423,19 @@ def test_a_twin_deployment_with_a_lerobot_camera_hands_its_frames_to_the_skill(p
     try:
         (reader,) = runner.sensor_readers
         reader.read_synced(time.monotonic_ns() + 5_000_000_000)
-        result = runner.run(30)
+        published_before = reader.frames_published
+        result = runner.run(60)
+        published = reader.frames_published - published_before
     finally:
         runner.deactivate()
         skill.shutdown()
 
-    assert result.n_ticks == 30
+    assert result.n_ticks == 60
+    # As in the shipped camera deployments: on a loaded machine a late frame withholds its tick.
     reasons = [t.withheld_reason for t in runner.recent_ticks if t.withheld_reason]
     assert set(reasons) <= {"stale_sensor"}, reasons
-    assert len(reasons) <= 3, reasons
-    assert len(seen) == 30 - len(reasons)
+    assert len(reasons) <= 6, reasons
+    assert len(seen) == 60 - len(reasons)
     seqs = set()
     for world in seen:
         assert world.image_frames is not None
@@ -442,5 +445,7 @@ def test_a_twin_deployment_with_a_lerobot_camera_hands_its_frames_to_the_skill(p
         assert frame.encoding == FrameEncoding.RGB8
         assert np.abs(pixels[HEIGHT // 4, WIDTH // 4].astype(int) - RED).max() <= 6
         seqs.add(frame.seq)
-    assert len(seqs) >= 15, "the skill saw the camera's new frames, not one frozen image"
+    # The camera kept delivering (about 30 fps for two seconds) and the skill saw most of its frames.
+    assert published >= 30, published
+    assert len(seqs) >= 0.65 * published, (len(seqs), published)
     assert lerobot_threads() == []
