@@ -15,7 +15,12 @@ converts it to the sensor's encoding and publishes it into the frame slot. LeRob
 start a reader thread of their own in ``connect()`` that cannot be turned off, and their
 ``read()`` is a wait on that thread with a fixed 10 s timeout that first discards the frame
 already waiting; so openral's thread calls ``async_read`` (LeRobot's "next frame not yet
-returned") with the deployment's own timeout instead, and receives every frame exactly once.
+returned") with the deployment's own timeout instead: it never gets a frame twice, and never
+waits on a frame that has already arrived.
+
+Colour: LeRobot delivers frames in its config's ``color_mode`` (RGB unless set; for ``zmq``, the
+order the publisher encoded, RGB for LeRobot's ``image_server``); openral converts them to the
+sensor's ``encoding`` (bgr8, rgb8 or mono8), and leaves them as they are when they already match.
 
 Capture stamps are LeRobot's own capture instants carried onto the runner's clock: LeRobot's
 built-in cameras note ``time.perf_counter()`` as each frame is read, and the frame's age on
