@@ -16,7 +16,8 @@ start a reader thread of their own in ``connect()`` that cannot be turned off, a
 ``read()`` is a wait on that thread with a fixed 10 s timeout that first discards the frame
 already waiting; so openral's thread calls ``async_read`` (LeRobot's "next frame not yet
 returned") with the deployment's own timeout instead: it never gets a frame twice, and never
-waits on a frame that has already arrived.
+waits on a frame that has already arrived. The camera's warm-up (LeRobot's ``warmup_s``) is read
+on openral's side too, after ``connect(warmup=False)``.
 
 Colour: LeRobot delivers frames in its config's ``color_mode`` (RGB unless set; for ``zmq``, the
 order the publisher encoded, RGB for LeRobot's ``image_server``); openral converts them to the
@@ -204,19 +205,30 @@ class LeRobotCameraSensorReader(SlotReader):
         """LeRobot's camera for the config, made by LeRobot's own factory and connected."""
         from lerobot.cameras.utils import make_cameras_from_configs  # noqa: PLC0415  (the extra)
 
+        camera = None
         try:
             camera = make_cameras_from_configs({self.sensor_id: self.lerobot_config})[self.sensor_id]
-            camera.connect()
+            camera.connect(warmup=False)  # warmed up by _first_frame
         except Exception as exc:
+            if getattr(camera, "thread", None) is not None:  # a reader thread LeRobot left running
+                _disconnect(camera, self.sensor_id)
             raise ROSHardwareError(
                 f"sensor '{self.sensor_id}': LeRobot's {self.params.type} camera did not connect: {exc}"
             ) from exc
         return camera
 
     def _first_frame(self, camera: Any, stop: threading.Event) -> tuple[int, np.ndarray]:
-        """The first frame after connecting; its size must be the sensor's."""
+        """The last frame of the camera's warm-up (LeRobot's ``warmup_s``: frames read and dropped); its size must
+        be the sensor's.
+
+        The warm-up is done here, not in LeRobot's ``connect()``: LeRobot 0.6's zmq camera, when its
+        warm-up gets no frame, closes its socket under its own running reader thread and hangs there.
+        """
+        warm_until = time.monotonic() + float(getattr(self.lerobot_config, "warmup_s", 0) or 0)
         try:
             first = self._capture(camera, stop)
+            while time.monotonic() < warm_until:
+                first = self._capture(camera, stop)
         except Exception as exc:
             raise ROSHardwareError(
                 f"sensor '{self.sensor_id}': LeRobot's {self.params.type} camera connected but delivered no frame "
