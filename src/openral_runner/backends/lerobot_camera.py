@@ -262,8 +262,10 @@ class LeRobotCameraSensorReader(SlotReader):
             except TimeoutError:
                 if stop.is_set() or time.monotonic() >= give_up:
                     raise
-        now_ns = self._clock_ns()
-        stamp_ns = now_ns - _capture_age_ns(camera, pixels)
+        captured_at = _lerobot_stamp(camera, pixels)
+        # perf_counter first: a pause between the two readings makes the stamp later, never earlier than the capture.
+        age_ns = 0 if captured_at is None else max(0, round((time.perf_counter() - captured_at) * 1e9))
+        stamp_ns = self._clock_ns() - age_ns
         return stamp_ns, _to_encoding(pixels, _colour_order(self.lerobot_config), self.config.encoding)
 
     def _publish(self, stamp_ns: int, pixels: np.ndarray) -> None:
@@ -370,21 +372,19 @@ def _to_encoding(pixels: np.ndarray, order: str, encoding: FrameEncoding) -> np.
     return pixels if code is None else cv2.cvtColor(pixels, code)
 
 
-def _capture_age_ns(camera: Any, pixels: np.ndarray) -> int:
-    """How long ago LeRobot captured ``pixels``, from its ``perf_counter`` stamp; 0 when it does not say.
+def _lerobot_stamp(camera: Any, pixels: np.ndarray) -> float | None:
+    """When LeRobot captured ``pixels`` (its ``time.perf_counter()``), or ``None`` when it does not say.
 
     LeRobot's built-in cameras keep the latest frame and its stamp under ``frame_lock``; the stamp
     is used only while it still belongs to this very frame.
     """
     lock = getattr(camera, "frame_lock", None)
     if lock is None:
-        return 0
+        return None
     with lock:
         latest = getattr(camera, "latest_frame", None)
         stamp = getattr(camera, "latest_timestamp", None)
-    if latest is not pixels or not isinstance(stamp, float):
-        return 0
-    return max(0, round((time.perf_counter() - stamp) * 1e9))
+    return stamp if latest is pixels and isinstance(stamp, float) else None
 
 
 def _disconnect(camera: Any, sensor_id: str) -> None:
