@@ -106,6 +106,9 @@ def test_wrong_key_unknown_type_and_cameras_name_their_field(tmp_path: Path) -> 
         LeRobotRobotHAL(SO101, {**base, "prot": "x"})
     with pytest.raises(ROSConfigError, match=r"hal\.params\.type: .*'so101_folower'.*did you mean 'so101_follower'"):
         LeRobotRobotHAL(SO101, {**base, "type": "so101_folower"})
+    without_port = {key: value for key, value in base.items() if key != "port"}
+    with pytest.raises(ROSConfigError, match=r"hal\.params\.port: Missing required field"):
+        LeRobotRobotHAL(SO101, without_port)
     camera = {"type": "opencv", "index_or_path": 0, "fps": 30, "width": 640, "height": 480}
     with pytest.raises(ROSConfigError, match=r"hal\.params\.cameras: .*front.*backend: lerobot_camera"):
         LeRobotRobotHAL(SO101, {**base, "cameras": {"front": camera}})

@@ -115,11 +115,14 @@ def build_device_config(kind: DeviceKind, type_name: str, params: Mapping[str, A
         path, message = _decoding_error(exc)
         allowed = sorted(f.name for f in dataclasses.fields(config_class) if f.init)
         where = ".".join((field, *path)) if path else field
-        if message.startswith("The fields"):
-            bad = message.split("`")[1] if "`" in message else ""
-            where = f"{field}.{bad.split(',')[0].strip()}" if bad else where
+        if message.startswith(("The fields", "Missing required field")) and "`" in message:
+            named = message.split("`")[1].split(",")[0].strip()
+            where = ".".join((field, *path, named))
         hint = None if path else f"allowed keys: {', '.join(allowed)}"
         raise ROSConfigError(f"{message} (LeRobot {kind} '{type_name}')", field=where, hint=hint) from exc
+    except draccus.utils.ParsingError as exc:  # a value LeRobot's own checks (__post_init__) refuse
+        reason = " ".join(str(exc.__cause__ or exc).split())
+        raise ROSConfigError(f"LeRobot refuses this {kind} config: {reason}", field=field) from exc
     except (TypeError, ValueError) as exc:
         raise ROSConfigError(f"LeRobot refuses this {kind} config: {exc}", field=field) from exc
 

@@ -145,7 +145,7 @@ class LeRobotCameraSensorReader(SlotReader):
                 hint="use encoding bgr8, rgb8 or mono8",
             )
         lerobot_params = _lerobot_params(config, raw, base_dir)
-        return cls(config, params, _decode(params.type, lerobot_params, field=field))
+        return cls(config, params, build_device_config("camera", params.type, lerobot_params, field=field))
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -335,17 +335,6 @@ def _lerobot_params(config: SensorReaderConfig, raw: Mapping[str, Any], base_dir
             require_user_file(source, base_dir, field=f"{field}.index_or_path", what="video file")
         )
     return params
-
-
-def _decode(type_name: str, params: Mapping[str, Any], *, field: str) -> Any:
-    """LeRobot's camera config; a value its own checks refuse (``__post_init__``) is a config error too."""
-    from draccus.utils import ParsingError  # noqa: PLC0415  (the extra)
-
-    try:
-        return build_device_config("camera", type_name, params, field=field)
-    except ParsingError as exc:
-        reason = exc.__cause__ or exc
-        raise ROSConfigError(f"LeRobot refuses this {type_name} camera config: {reason}", field=field) from exc
 
 
 def _is_file_path(source: str) -> bool:
