@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 pytestmark = pytest.mark.usefixtures("quick_thread_switches")
 
@@ -110,8 +111,28 @@ def test_wrong_key_unknown_type_and_cameras_name_their_field(tmp_path: Path) -> 
     with pytest.raises(ROSConfigError, match=r"hal\.params\.port: Missing required field"):
         LeRobotRobotHAL(SO101, without_port)
     camera = {"type": "opencv", "index_or_path": 0, "fps": 30, "width": 640, "height": 480}
-    with pytest.raises(ROSConfigError, match=r"hal\.params\.cameras: .*front.*backend: lerobot_camera"):
+    with pytest.raises(ROSConfigError, match=r"hal\.params\.cameras: .*front") as caught:
         LeRobotRobotHAL(SO101, {**base, "cameras": {"front": camera}})
+    # The fix the message gives is a sensor block that validates as it is.
+    block = yaml.safe_load(str(caught.value).split("move them under sensors: ")[1].rstrip(")"))
+    assert block == [
+        {
+            "sensor_id": "front",
+            "backend": "lerobot_camera",
+            "width": 640,
+            "height": 480,
+            "fps": 30,
+            "backend_params": {"type": "opencv", "index_or_path": 0},
+        }
+    ]
+    deployment = yaml.safe_load((ROOT / "deployments" / "so101_lerobot.yaml").read_text(encoding="utf-8"))
+    deployment["hal"]["params"] = base
+    deployment["sensors"] = block
+    path = tmp_path / "with_camera.yaml"
+    path.write_text(yaml.safe_dump(deployment), encoding="utf-8")
+    result = CliRunner().invoke(cli, ["validate", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "1 sensor(s)" in result.output
 
 
 def test_missing_calibration_names_the_file_and_the_command(tmp_path: Path) -> None:

@@ -27,6 +27,7 @@ normalisation with the calibration); openral runs the loop around it. What openr
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -247,13 +248,29 @@ def _refuse_cameras(config: Any, type_name: str) -> None:
     for attribute in ("left_arm_config", "right_arm_config"):
         cameras.update(getattr(getattr(config, attribute, None), "cameras", None) or {})
     if cameras:
-        name = next(iter(cameras))
+        blocks = "; ".join(_sensor_block(name, camera) for name, camera in sorted(cameras.items()))
         raise ROSConfigError(
             f"the robot's cameras ({', '.join(sorted(cameras))}) run as openral sensors, not inside its reads",
             field=f"{FIELD}.cameras",
-            hint=f"move each to sensors: e.g. - {{id: {name}, backend: lerobot_camera, backend_params: "
-            f"{{type: {getattr(cameras[name], 'type', 'opencv')}, ...its LeRobot keys...}}}}",
+            hint=f"move them under sensors: {blocks}",
         )
+
+
+def _sensor_block(name: str, camera: Any) -> str:
+    """The ``sensors:`` entry that runs one of a LeRobot robot's cameras on openral's capture thread."""
+    sizes = {key: getattr(camera, key, None) for key in ("width", "height", "fps")}
+    keys = {
+        f.name: getattr(camera, f.name)
+        for f in dataclasses.fields(camera)
+        if f.name not in sizes and getattr(camera, f.name) != f.default and not callable(getattr(camera, f.name))
+    }
+    params = ", ".join([f"type: {getattr(camera, 'type', '?')}", *(f"{k}: {_plain(v)}" for k, v in keys.items())])
+    fields = "".join(f", {key}: {value}" for key, value in sizes.items() if value is not None)
+    return f"- {{sensor_id: {name}, backend: lerobot_camera{fields}, backend_params: {{{params}}}}}"
+
+
+def _plain(value: Any) -> Any:
+    return getattr(value, "value", value)
 
 
 def _position_keys(robot: Any, manifest: RobotManifest, type_name: str) -> list[str]:
