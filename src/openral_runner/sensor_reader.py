@@ -160,6 +160,11 @@ def validate_backend_params(model: type[ModelT], config: SensorReaderConfig, *, 
     )
 
 
+def is_file_path(source: str) -> bool:
+    """A capture source that names a file (not a URL, a device node or a camera index)."""
+    return "://" not in source and not source.startswith("/dev/") and not source.isdigit()
+
+
 def require_video_file(device: str, base_dir: Path | None, *, sensor_id: str) -> Path:
     """The video file a sensor names, resolved against the deployment's folder; it must exist now.
 

@@ -50,7 +50,7 @@ from openral_core.config import validate_model
 from openral_core.config_files import require_user_file
 from openral_hal.lerobot.device_config import build_device_config, require_lerobot
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
-from openral_runner.sensor_reader import backend_params_field
+from openral_runner.sensor_reader import backend_params_field, is_file_path
 
 _log = structlog.get_logger(__name__)
 
@@ -330,15 +330,11 @@ def _lerobot_params(config: SensorReaderConfig, raw: Mapping[str, Any], base_dir
             )
         params["fps"] = int(config.fps)
     source = params.get("index_or_path")
-    if isinstance(source, str) and _is_file_path(source):
+    if isinstance(source, str) and is_file_path(source):
         params["index_or_path"] = str(
             require_user_file(source, base_dir, field=f"{field}.index_or_path", what="video file")
         )
     return params
-
-
-def _is_file_path(source: str) -> bool:
-    return "://" not in source and not source.startswith("/dev/") and not source.isdigit()
 
 
 def _colour_order(lerobot_config: Any) -> str:

@@ -35,7 +35,7 @@ from openral_core import (
 from openral_core.config import validate_model
 from openral_core.config_files import is_regular_file
 from openral_runner.frame_slot import LatestFrameSlot, SlotReader, frame_from_array
-from openral_runner.sensor_reader import require_video_file, validate_backend_params
+from openral_runner.sensor_reader import is_file_path, require_video_file, validate_backend_params
 
 try:
     import cv2
@@ -163,7 +163,7 @@ class OpenCVThreadSensorReader(SlotReader):
         device = params.device
         if isinstance(device, str) and device.isdigit():
             device = int(device)
-        self.is_file = isinstance(device, str) and _is_file_path(device)
+        self.is_file = isinstance(device, str) and is_file_path(device)
         if not self.is_file and (params.loop or params.paced):
             raise ROSConfigError(
                 f"sensor '{sensor_id}': loop and paced apply to video files only, not to {device!r}",
@@ -204,7 +204,7 @@ class OpenCVThreadSensorReader(SlotReader):
             ROSConfigError: A wrong or missing parameter; the message names it and the allowed keys.
         """
         params = validate_backend_params(OpenCVThreadParams, config, backend="opencv_thread")
-        if isinstance(params.device, str) and _is_file_path(params.device):
+        if isinstance(params.device, str) and is_file_path(params.device):
             path = require_video_file(params.device, base_dir, sensor_id=config.sensor_id)
             params = params.model_copy(update={"device": str(path)})
         return cls(config, params)
@@ -487,10 +487,6 @@ def _models_from_keywords(keywords: dict[str, Any]) -> tuple[SensorReaderConfig,
 
 _SENSOR_FIELDS = ("sensor_id", "fps", "width", "height", "encoding", "max_age_ms")
 """The keywords of the specification's form that are the sensor's own fields, not ``backend_params``."""
-
-
-def _is_file_path(device: str) -> bool:
-    return "://" not in device and not device.startswith("/dev/") and not device.isdigit()
 
 
 __all__ = ["OpenCVThreadParams", "OpenCVThreadSensorReader"]
