@@ -32,19 +32,21 @@ LeRobot's payload; then 4, the HAL's position and speed) and ``read_state``; the
 transaction, LeRobot's ``sync_read`` raw and normalised, ``get_observation``, ``lerobot_robot``'s
 ``read_state``. Writes likewise. Both ``read_state`` again with one more Python thread that always
 wants the GIL (what a camera or encoder thread does to a deployment). Then the SDK's mechanics,
-counted per sync read: serial reads, timeout checks, the port flush before each send, the reply
-deadline; and the pure conversions (no I/O) of both drivers. The closing breakdown subtracts
-each layer's p50 from the next.
+counted per sync read (serial reads, deadline checks, the port flush before each send, the reply
+deadline). The closing breakdown takes the waiting out: the same layers called back to back on a
+port that answers at once (replies canned), so each layer's own Python work per call is the
+difference of two medians, for both drivers; beside it, the wait of the real transactions.
 
-What the layers show (read ``motors/motors_bus.py``, ``motors/feetech/feetech.py`` and
+What the layers look at (``motors/motors_bus.py``, ``motors/feetech/feetech.py`` and
 ``scservo_sdk`` beside them): the SDK opens the port with ``timeout=0`` and busy-polls, reading
 each servo's reply in pieces (header, then the rest), one servo after another, checking a
-``time.time()`` deadline between reads; its CPU time is about its wall time, so it takes a core,
-and drops and retakes the GIL, for as long as it waits. Each packet is a list of ints with a
-Python checksum loop, and every send first flushes (``tcdrain``) the port. LeRobot then maps ids
-to names, decodes the sign and normalises motor by motor in Python. openral's bus makes one
-blocking read of the exact reply size (the wait costs no CPU) and converts with a few float
-operations; ``lerobot_robot``'s own conversion is a numpy expression.
+``time.time()`` deadline between reads; its CPU time is about its wall time, so for as long as it
+waits it holds a core (which the emulator, or the kernel's tty work that delivers the bytes,
+needs) and drops and retakes the GIL at every read. Each packet is a list of ints with a Python
+checksum loop, and every send first flushes (``tcdrain``) the port. LeRobot then maps ids to
+names, decodes the sign and normalises motor by motor in Python; ``bi_so_follower`` does it all
+once per arm, in series. openral's bus makes one blocking read of the exact reply size (the wait
+costs no CPU) and converts with a few float operations.
 
 Run:  UV_PROJECT_ENVIRONMENT=.venv-py312 uv run --python 3.12 --no-sync python benchmarks/lerobot_robot.py
       [--seconds 10] [--rows openral-6,lerobot-6,openral-12,lerobot-12] [--calls 150] [--pause-ms 33.3] [--no-layers]
@@ -75,6 +77,8 @@ from _common import ComponentTimer, machine_line
 RATE_HZ = 30
 ROWS = ("openral-6", "lerobot-6", "openral-12", "lerobot-12")
 SO101_MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
+SYNC_READ = 0x82
+"""The Feetech SYNC_READ instruction code."""
 TWELVE = "so101_twelve_one_bus"
 """The benchmark's 12-joint robot: the SO-101's joints twice, servo ids 1..12, on one bus."""
 LEROBOT_MISSING = "needs the 'lerobot' extra, which installs on Python 3.12 (UV_PROJECT_ENVIRONMENT=.venv-py312)"
@@ -367,6 +371,7 @@ class Layers:
         self.pause_s = pause_s
         self.timed: list[Layer] = []
         self.facts: dict[str, float] = {}
+        self.no_io_us: dict[str, float] = {}
 
     def time(self, name: str, fn: Callable[[], object]) -> None:
         """Wall time and this thread's CPU time of each call of ``fn`` (a failed call counts, and is counted)."""
@@ -387,15 +392,18 @@ class Layers:
         self.timed.append(Layer(name, _pct(wall, 50), _pct(wall, 99), _pct(cpu, 50), failed))
 
     def conversion(self, name: str, fn: Callable[[], object], calls: int = 2000) -> None:
-        """Mean time of a call with no I/O (a conversion), back to back."""
+        """Median time of a call that does no I/O (replies canned at the port), back to back."""
         fn()
-        start = time.perf_counter()
-        for _ in range(calls):
+        times = np.empty(calls)
+        perf = time.perf_counter_ns
+        for i in range(calls):
+            start = perf()
             fn()
-        self.facts[f"{name} (µs)"] = (time.perf_counter() - start) / calls * 1e6
+            times[i] = perf() - start
+        self.no_io_us[name] = float(np.median(times)) / 1e3
 
-    def p50(self, prefix: str) -> float:
-        return next(layer.wall_p50_us for layer in self.timed if layer.name.startswith(prefix))
+    def timed_layer(self, prefix: str) -> Layer:
+        return next(layer for layer in self.timed if layer.name.startswith(prefix))
 
 
 @contextmanager
@@ -436,6 +444,67 @@ class CountingSerial:
         return Counted(*args, **kwargs)
 
 
+class CannedSerial:
+    """A pyserial stand-in that answers every SYNC_READ at once with ``reply``: a driver's own work, no I/O."""
+
+    def __init__(self, reply: bytes) -> None:
+        self.reply = reply
+        self.pending = bytearray()
+        self._file = tempfile.TemporaryFile()  # noqa: SIM115  (a descriptor for the bus's lock; closed in close())
+
+    def fileno(self) -> int:
+        return self._file.fileno()
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self.pending)
+
+    def write(self, packet: bytes) -> int:
+        if packet[4] == SYNC_READ:
+            self.pending += self.reply
+        return len(packet)
+
+    def read(self, size: int = 1) -> bytes:
+        data = bytes(self.pending[:size])
+        del self.pending[:size]
+        return data
+
+    def reset_input_buffer(self) -> None:
+        self.pending.clear()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+@contextmanager
+def canned_sdk_port(port: Any, reply: bytes) -> Iterator[None]:
+    """The SDK's port handler answering every sync read at once with ``reply`` (no flush, no I/O)."""
+    pending = bytearray()
+
+    def write_port(packet: list[int]) -> int:
+        if packet[4] == SYNC_READ:
+            pending.extend(reply)
+        return len(packet)
+
+    def read_port(length: int) -> bytes:
+        data = bytes(pending[:length])
+        del pending[:length]
+        return data
+
+    port.writePort, port.readPort, port.clearPort = write_port, read_port, lambda: None
+    try:
+        yield
+    finally:
+        del port.writePort, port.readPort, port.clearPort
+
+
+def status_replies(ids: Sequence[int], data: bytes) -> bytes:
+    """Every servo's status packet for a sync read of ``data``."""
+    from openral_hal.feetech import protocol as p  # noqa: PLC0415
+
+    return b"".join(p.status_packet(servo_id, 0, data) for servo_id in ids)
+
+
 def openral_layers(port: str, out: Layers, folder: Path) -> None:
     from openral_core import Action  # noqa: PLC0415
     from openral_hal.feetech import protocol as p  # noqa: PLC0415
@@ -465,12 +534,16 @@ def openral_layers(port: str, out: Layers, folder: Path) -> None:
         with busy_python_thread():
             out.time("openral so10x_follower.read_state, busy thread beside", hal.read_state)
         out.time("openral so10x_follower.send_action", lambda: hal.send_action(hold))
-        cal = [hal.calibration.joints[name] for name in hal.joint_names]
-        out.conversion("openral so10x ticks → radians, 6 joints", lambda: [c.to_radians(2048) for c in cal])
-        out.conversion(
-            "openral so10x radians → ticks, 6 joints",
-            lambda: [c.to_ticks(q) for c, q in zip(cal, state.positions, strict=True)],
-        )
+        real = hal.bus
+        with FeetechBus("canned", serial_factory=lambda *_, **__: CannedSerial(status_replies(ids, bytes(4)))) as bus:
+            hal.bus = bus
+            try:
+                out.conversion("openral FeetechBus.sync_read", lambda: bus.sync_read(ids, Register.PRESENT_POSITION, 4))
+                out.conversion("openral so10x_follower.read_state", hal.read_state)
+                out.conversion("openral FeetechBus.sync_write", lambda: bus.sync_write(Register.GOAL_POSITION, goals))
+                out.conversion("openral so10x_follower.send_action", lambda: hal.send_action(hold))
+            finally:
+                hal.bus = real
     finally:
         hal.disconnect()
 
@@ -494,7 +567,6 @@ def lerobot_layers(port: str, out: Layers, folder: Path) -> None:
         normalised = bus.sync_read("Present_Position")
         action = {f"{name}.pos": value for name, value in normalised.items()}
         raw_ids = {bus.motors[name].id: value for name, value in raw.items()}
-        normalised_ids = {bus.motors[name].id: value for name, value in normalised.items()}
         out.time("SDK sync-read transaction (bus._sync_read)", lambda: bus._sync_read(position, length, ids))
         out.time(
             "LeRobot bus.sync_read raw (normalize=False)", lambda: bus.sync_read("Present_Position", normalize=False)
@@ -515,20 +587,17 @@ def lerobot_layers(port: str, out: Layers, folder: Path) -> None:
         out.time("LeRobot robot.send_action()", lambda: robot.send_action(action))
         out.time("openral lerobot_robot.send_action", lambda: hal.send_action(hold))
         out.facts |= sdk_mechanics(bus, position, length, ids, out.pause_s)
-        out.conversion(
-            "LeRobot decode sign + normalise, 6 motors",
-            lambda: bus._normalize(bus._decode_sign("Present_Position", dict(raw_ids))),
-        )
-        out.conversion(
-            "LeRobot unnormalise + encode sign + serialise, 6 motors",
-            lambda: bus._setup_sync_writer(
-                bus._encode_sign("Goal_Position", bus._unnormalize(normalised_ids)), goal, 2
-            ),
-        )
-        values = np.array([normalised[name] for name in SO101_MOTORS])
-        radians = hal.units.to_radians(values)
-        out.conversion("openral units: LeRobot's → radians, 6 joints", lambda: hal.units.to_radians(values))
-        out.conversion("openral units: radians → LeRobot's, 6 joints", lambda: hal.units.to_policy(radians))
+        with canned_sdk_port(bus.port_handler, status_replies(ids, (2048).to_bytes(2, "little"))):
+            out.conversion("SDK sync read", lambda: bus._sync_read(position, length, ids))
+            out.conversion("LeRobot bus.sync_read raw", lambda: bus.sync_read("Present_Position", normalize=False))
+            out.conversion("LeRobot bus.sync_read normalised", lambda: bus.sync_read("Present_Position"))
+            out.conversion("LeRobot robot.get_observation", robot.get_observation)
+            out.conversion("openral lerobot_robot.read_state", hal.read_state)
+            out.conversion("SDK sync write", lambda: bus._sync_write(goal, length, raw_ids))
+            out.conversion("LeRobot bus.sync_write raw", lambda: bus.sync_write("Goal_Position", raw, normalize=False))
+            out.conversion("LeRobot bus.sync_write normalised", lambda: bus.sync_write("Goal_Position", normalised))
+            out.conversion("LeRobot robot.send_action", lambda: robot.send_action(action))
+            out.conversion("openral lerobot_robot.send_action", lambda: hal.send_action(hold))
     finally:
         hal.disconnect()
 
@@ -589,40 +658,51 @@ def run_layers(calls: int, pause_s: float, with_lerobot: bool) -> None:
     for name, value in out.facts.items():
         print(f"  {name:<62} {value:8.2f}")
     if not with_lerobot:
+        for name, value in out.no_io_us.items():
+            print(f"  {name + ', no I/O (median µs)':<62} {value:8.1f}")
         print(f"  LeRobot layers: skipped, {LEROBOT_MISSING}")
         return
-    p50 = out.p50
-    print("breakdown (p50 wall µs; each step is its layer's p50 minus the one before, so noise can make one negative):")
-    read_steps = [
-        ("read: SDK transaction (tx, then per-servo rx, busy-polling)", "SDK sync-read transaction (bus._sync_read)"),
-        ("  + LeRobot sync_read (names, decode sign)", "LeRobot bus.sync_read raw"),
-        ("  + LeRobot normalisation", "LeRobot bus.sync_read normalised"),
-        ("  + so101_follower.get_observation", "LeRobot robot.get_observation"),
-        ("  + openral lerobot_robot (units, JointState)", "openral lerobot_robot.read_state"),
-    ]
-    write_steps = [
-        ("write: SDK packet (list, checksum, flush, write)", "SDK sync-write packet"),
-        ("  + LeRobot sync_write raw (serialise each motor)", "LeRobot bus.sync_write raw"),
-        ("  + LeRobot unnormalisation", "LeRobot bus.sync_write normalised"),
-        ("  + so101_follower.send_action", "LeRobot robot.send_action"),
-        ("  + openral lerobot_robot (units, clip)", "openral lerobot_robot.send_action"),
-    ]
-    for steps in (read_steps, write_steps):
-        below = 0.0
-        for label, prefix in steps:
-            total = p50(prefix)
-            print(f"  {label:<62} {total - below:+7.0f}  (total {total:6.0f})")
-            below = total
+    print_breakdown(out)
+
+
+LEROBOT_READ = (
+    "SDK sync read",
+    "LeRobot bus.sync_read raw",
+    "LeRobot bus.sync_read normalised",
+    "LeRobot robot.get_observation",
+    "openral lerobot_robot.read_state",
+)
+LEROBOT_WRITE = (
+    "SDK sync write",
+    "LeRobot bus.sync_write raw",
+    "LeRobot bus.sync_write normalised",
+    "LeRobot robot.send_action",
+    "openral lerobot_robot.send_action",
+)
+OPENRAL_READ = ("openral FeetechBus.sync_read", "openral so10x_follower.read_state")
+OPENRAL_WRITE = ("openral FeetechBus.sync_write", "openral so10x_follower.send_action")
+
+
+def print_breakdown(out: Layers) -> None:
+    """Each driver's own work per call (no I/O) layer by layer, then the transaction's wait."""
+    no_io = out.no_io_us
+    print("breakdown: each driver's own work per call, replies canned at the port (no I/O; median µs, back to back)")
+    stacks = [("read", LEROBOT_READ, OPENRAL_READ), ("write", LEROBOT_WRITE, OPENRAL_WRITE)]
+    for kind, theirs, ours in stacks:
+        for stack in (theirs, ours):
+            below = 0.0
+            for name in stack:
+                print(f"  {kind:<6} {name:<44} {no_io[name] - below:+8.1f}  (total {no_io[name]:6.1f})")
+                below = no_io[name]
+    sdk, bus = out.timed_layer("SDK sync-read"), out.timed_layer("openral FeetechBus.sync_read, 4")
     print(
-        f"  openral for the same: read {p50('openral so10x_follower.read_state'):.0f} (its bus transaction "
-        f"{p50('openral FeetechBus.sync_read, 4 B/servo (the HAL'):.0f}), write "
-        f"{p50('openral so10x_follower.send_action'):.0f} (its bus write {p50('openral FeetechBus.sync_write'):.0f})"
+        f"  the wait (real transactions, p50 wall/CPU µs): SDK sync read {sdk.wall_p50_us:.0f}/{sdk.cpu_p50_us:.0f} "
+        f"({out.facts['SDK serial reads per sync read (port opened with timeout=0)']:.0f} serial reads, busy-polling), "
+        f"openral FeetechBus.sync_read {bus.wall_p50_us:.0f}/{bus.cpu_p50_us:.0f} (1 blocking read)"
     )
-    busy = {layer.name: layer for layer in out.timed if layer.name.endswith("busy thread beside")}
-    ours = busy["openral so10x_follower.read_state, busy thread beside"]
-    theirs = busy["openral lerobot_robot.read_state, busy thread beside"]
+    ours, theirs = (out.timed_layer(f"openral {hal}.read_state, busy") for hal in ("so10x_follower", "lerobot_robot"))
     print(
-        f"  with a busy Python thread beside, read_state p50/p99: so10x_follower {ours.wall_p50_us:.0f}/"
+        f"  with a busy Python thread beside, read_state p50/p99 µs: so10x_follower {ours.wall_p50_us:.0f}/"
         f"{ours.wall_p99_us:.0f} ({ours.failed} failed), lerobot_robot {theirs.wall_p50_us:.0f}/"
         f"{theirs.wall_p99_us:.0f} ({theirs.failed} failed) of {out.calls} calls"
     )
