@@ -71,6 +71,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from _common import ComponentTimer, machine_line
 
@@ -326,7 +327,7 @@ def run_row(spec: RowSpec, seconds: float) -> RowFigures:
     )
 
 
-def _pct(values: np.ndarray, q: float) -> float:
+def _pct(values: npt.NDArray[np.float64], q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
@@ -435,7 +436,7 @@ class CountingSerial:
 
         counter = self
 
-        class Counted(serial.Serial):  # type: ignore[misc]
+        class Counted(serial.Serial):
             def read(self, size: int = 1) -> bytes:
                 counter.reads += 1
                 data: bytes = super().read(size)
@@ -535,7 +536,11 @@ def openral_layers(port: str, out: Layers, folder: Path) -> None:
             out.time("openral so10x_follower.read_state, busy thread beside", hal.read_state)
         out.time("openral so10x_follower.send_action", lambda: hal.send_action(hold))
         real = hal.bus
-        with FeetechBus("canned", serial_factory=lambda *_, **__: CannedSerial(status_replies(ids, bytes(4)))) as bus:
+
+        def canned_port(*_: Any, **__: Any) -> Any:
+            return CannedSerial(status_replies(ids, bytes(4)))
+
+        with FeetechBus("canned", serial_factory=canned_port) as bus:
             hal.bus = bus
             try:
                 out.conversion("openral FeetechBus.sync_read", lambda: bus.sync_read(ids, Register.PRESENT_POSITION, 4))
@@ -688,8 +693,8 @@ def print_breakdown(out: Layers) -> None:
     no_io = out.no_io_us
     print("breakdown: each driver's own work per call, replies canned at the port (no I/O; median µs, back to back)")
     stacks = [("read", LEROBOT_READ, OPENRAL_READ), ("write", LEROBOT_WRITE, OPENRAL_WRITE)]
-    for kind, theirs, ours in stacks:
-        for stack in (theirs, ours):
+    for kind, lerobot_stack, openral_stack in stacks:
+        for stack in (lerobot_stack, openral_stack):
             below = 0.0
             for name in stack:
                 print(f"  {kind:<6} {name:<44} {no_io[name] - below:+8.1f}  (total {no_io[name]:6.1f})")
