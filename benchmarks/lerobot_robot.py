@@ -36,6 +36,8 @@ counted per sync read (serial reads, deadline checks, the port flush before each
 deadline). The closing breakdown takes the waiting out: the same layers called back to back on a
 port that answers at once (replies canned), so each layer's own Python work per call is the
 difference of two medians, for both drivers; beside it, the wait of the real transactions.
+That wait is bimodal for a busy-polling read (quick, or a few ms while the reply waits for a
+CPU), so its p50 moves between runs: compare p50, mean and p99, over more than one run.
 
 What the layers look at (``motors/motors_bus.py``, ``motors/feetech/feetech.py`` and
 ``scservo_sdk`` beside them): the SDK opens the port with ``timeout=0`` and busy-polls, reading
@@ -353,13 +355,15 @@ class Layer:
     name: str
     wall_p50_us: float
     wall_p99_us: float
+    wall_mean_us: float
     cpu_p50_us: float
     failed: int
 
     def line(self) -> str:
         failed = f"  FAILED {self.failed} of the calls" if self.failed else ""
         return (
-            f"  {self.name:<62} wall µs p50 {self.wall_p50_us:6.0f} p99 {self.wall_p99_us:7.0f}  "
+            f"  {self.name:<62} wall µs p50 {self.wall_p50_us:6.0f} p99 {self.wall_p99_us:7.0f} "
+            f"mean {self.wall_mean_us:6.0f}  "
             f"CPU µs p50 {self.cpu_p50_us:6.0f}{failed}"
         )
 
@@ -390,7 +394,7 @@ class Layers:
             w1, c1 = perf(), thread_time()
             if i >= 0:
                 wall[i], cpu[i] = (w1 - w0) / 1e3, (c1 - c0) / 1e3
-        self.timed.append(Layer(name, _pct(wall, 50), _pct(wall, 99), _pct(cpu, 50), failed))
+        self.timed.append(Layer(name, _pct(wall, 50), _pct(wall, 99), float(wall.mean()), _pct(cpu, 50), failed))
 
     def conversion(self, name: str, fn: Callable[[], object], calls: int = 2000) -> None:
         """Median time of a call that does no I/O (replies canned at the port), back to back."""
