@@ -35,9 +35,10 @@ wants the GIL (what a camera or encoder thread does to a deployment). Then the S
 counted per sync read (serial reads, deadline checks, the port flush before each send, the reply
 deadline). The closing breakdown takes the waiting out: the same layers called back to back on a
 port that answers at once (replies canned), so each layer's own Python work per call is the
-difference of two medians, for both drivers; beside it, the wait of the real transactions.
-That wait is bimodal for a busy-polling read (quick, or a few ms while the reply waits for a
-CPU), so its p50 moves between runs: compare p50, mean and p99, over more than one run.
+difference of two medians (each the lowest of five batches), for both drivers; beside it, the
+wait of the real transactions. That wait is bimodal for a busy-polling read (quick, or a few ms
+while the reply waits for a CPU), so its p50 moves between runs: compare p50, mean and p99, over
+more than one run.
 
 What the layers look at (``motors/motors_bus.py``, ``motors/feetech/feetech.py`` and
 ``scservo_sdk`` beside them): the SDK opens the port with ``timeout=0`` and busy-polls, reading
@@ -396,16 +397,20 @@ class Layers:
                 wall[i], cpu[i] = (w1 - w0) / 1e3, (c1 - c0) / 1e3
         self.timed.append(Layer(name, _pct(wall, 50), _pct(wall, 99), float(wall.mean()), _pct(cpu, 50), failed))
 
-    def conversion(self, name: str, fn: Callable[[], object], calls: int = 2000) -> None:
-        """Median time of a call that does no I/O (replies canned at the port), back to back."""
+    def conversion(self, name: str, fn: Callable[[], object], batches: int = 5, calls: int = 400) -> None:
+        """Time of a call that does no I/O (replies canned at the port), back to back: the lowest of
+        ``batches`` medians, so that a batch another process interrupted does not count."""
         fn()
         times = np.empty(calls)
         perf = time.perf_counter_ns
-        for i in range(calls):
-            start = perf()
-            fn()
-            times[i] = perf() - start
-        self.no_io_us[name] = float(np.median(times)) / 1e3
+        medians = []
+        for _ in range(batches):
+            for i in range(calls):
+                start = perf()
+                fn()
+                times[i] = perf() - start
+            medians.append(float(np.median(times)))
+        self.no_io_us[name] = min(medians) / 1e3
 
     def timed_layer(self, prefix: str) -> Layer:
         return next(layer for layer in self.timed if layer.name.startswith(prefix))
@@ -668,7 +673,7 @@ def run_layers(calls: int, pause_s: float, with_lerobot: bool) -> None:
         print(f"  {name:<62} {value:8.2f}")
     if not with_lerobot:
         for name, value in out.no_io_us.items():
-            print(f"  {name + ', no I/O (median µs)':<62} {value:8.1f}")
+            print(f"  {name + ', no I/O (µs, lowest of 5 medians)':<62} {value:8.1f}")
         print(f"  LeRobot layers: skipped, {LEROBOT_MISSING}")
         return
     print_breakdown(out)
@@ -695,7 +700,7 @@ OPENRAL_WRITE = ("openral FeetechBus.sync_write", "openral so10x_follower.send_a
 def print_breakdown(out: Layers) -> None:
     """Each driver's own work per call (no I/O) layer by layer, then the transaction's wait."""
     no_io = out.no_io_us
-    print("breakdown: each driver's own work per call, replies canned at the port (no I/O; median µs, back to back)")
+    print("breakdown: each driver's own work per call, replies canned at the port (no I/O; µs, lowest of 5 medians)")
     stacks = [("read", LEROBOT_READ, OPENRAL_READ), ("write", LEROBOT_WRITE, OPENRAL_WRITE)]
     for kind, lerobot_stack, openral_stack in stacks:
         for stack in (lerobot_stack, openral_stack):
