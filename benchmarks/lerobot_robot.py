@@ -26,16 +26,19 @@ missed slots, and the HAL's own time per tick in ``read_state`` and ``send_actio
 wrapped as ``ComponentTimer`` wraps components). Ratios are LeRobot over openral, within the run.
 
 Part 2, layers (6 servos, one emulated bus, both drivers in turn on the same one): each layer of
-each driver called on its own with a pause before each call (default one 30 Hz period, as in
-the loop), wall and CPU time per call. Reads: openral's ``FeetechBus.sync_read`` (2 bytes a servo,
+each driver called on its own with a pause before each call (default one 30 Hz period, as in the
+loop), wall and CPU time per call. Reads: openral's ``FeetechBus.sync_read`` (2 bytes a servo,
 LeRobot's payload; then 4, the HAL's position and speed) and ``read_state``; the SDK's sync-read
 transaction, LeRobot's ``sync_read`` raw and normalised, ``get_observation``, ``lerobot_robot``'s
-``read_state``. Writes likewise. Both ``read_state`` again with one more Python thread that always
-wants the GIL (what a camera or encoder thread does to a deployment). Then the SDK's mechanics,
-counted per sync read (serial reads, deadline checks, the port flush before each send, the reply
-deadline). The closing breakdown takes the waiting out: the same layers called back to back on a
-port that answers at once (replies canned), so each layer's own Python work per call is the
-difference of two medians (each the lowest of five batches), for both drivers; beside it, the
+``read_state``. Writes likewise. Both ``read_state`` again beside one more Python thread that
+always wants the GIL (what a camera or encoder thread does to a deployment), at Python's default 5
+ms GIL switch interval and at the 1 ms openral's serial deployments set, with that thread's
+progress: a reader that blocks lends it the GIL and may wait up to a switch interval to get it
+back; a reader that spins takes the GIL back after every read and starves it. Then the SDK's
+mechanics, counted per sync read (serial reads, deadline checks, the port flush before each send,
+the reply deadline). The closing breakdown takes the waiting out: the same layers called back to
+back on a port that answers at once (replies canned), so each layer's own Python work per call is
+the difference of two medians (each the lowest of five batches), for both drivers; beside it, the
 wait of the real transactions. That wait is bimodal for a busy-polling read (quick, or a few ms
 while the reply waits for a CPU), so its p50 moves between runs: compare p50, mean and p99, over
 more than one run.
@@ -46,10 +49,10 @@ each servo's reply in pieces (header, then the rest), one servo after another, c
 ``time.time()`` deadline between reads; its CPU time is about its wall time, so for as long as it
 waits it holds a core (which the emulator, or the kernel's tty work that delivers the bytes,
 needs) and drops and retakes the GIL at every read. Each packet is a list of ints with a Python
-checksum loop, and every send first flushes (``tcdrain``) the port. LeRobot then maps ids to
-names, decodes the sign and normalises motor by motor in Python; ``bi_so_follower`` does it all
-once per arm, in series. openral's bus makes one blocking read of the exact reply size (the wait
-costs no CPU) and converts with a few float operations.
+checksum loop, and every send first flushes (``tcdrain``: waits for output; stale input stays).
+LeRobot then maps ids to names, decodes the sign and normalises motor by motor in Python;
+``bi_so_follower`` does it all once per arm, in series. openral's bus makes one blocking read of
+the exact reply size (the wait costs no CPU) and converts with a few float operations.
 
 Run:  UV_PROJECT_ENVIRONMENT=.venv-py312 uv run --python 3.12 --no-sync python benchmarks/lerobot_robot.py
       [--seconds 10] [--rows openral-6,lerobot-6,openral-12,lerobot-12] [--calls 150] [--pause-ms 33.3] [--no-layers]
@@ -416,22 +419,44 @@ class Layers:
         return next(layer for layer in self.timed if layer.name.startswith(prefix))
 
 
+SWITCH_INTERVALS_S = (0.005, 0.001)
+"""Python's default GIL switch interval, and the one openral's serial deployments set (``realtime``)."""
+
+
 @contextmanager
-def busy_python_thread() -> Iterator[None]:
-    """Another Python thread that always wants the GIL (a camera conversion, a telemetry encoder)."""
+def busy_python_thread(switch_interval_s: float) -> Iterator[list[int]]:
+    """Another Python thread that always wants the GIL (a camera conversion, a telemetry encoder).
+
+    Yields a one-item list: the thread's loops so far (how much of the GIL it got).
+    """
     stop = threading.Event()
+    loops = [0]
 
     def spin() -> None:
         while not stop.is_set():
             sum(range(2000))
+            loops[0] += 1
 
+    saved = sys.getswitchinterval()
+    sys.setswitchinterval(switch_interval_s)
     thread = threading.Thread(target=spin, name="busy-beside", daemon=True)
     thread.start()
     try:
-        yield
+        yield loops
     finally:
         stop.set()
         thread.join()
+        sys.setswitchinterval(saved)
+
+
+def time_beside_busy_thread(out: Layers, hal_name: str, read_state: Callable[[], object]) -> None:
+    """``read_state`` with a busy Python thread beside, at each switch interval; the thread's share too."""
+    for interval in SWITCH_INTERVALS_S:
+        with busy_python_thread(interval) as loops:
+            start = time.perf_counter()
+            out.time(f"openral {hal_name}.read_state, busy thread, switch {interval * 1e3:g} ms", read_state)
+            rate = loops[0] / (time.perf_counter() - start)
+        out.facts[f"busy thread's loops/s beside {hal_name}, switch {interval * 1e3:g} ms"] = rate
 
 
 class CountingSerial:
@@ -541,8 +566,7 @@ def openral_layers(port: str, out: Layers, folder: Path) -> None:
         state = hal.read_state()
         hold = Action(joint_names=state.names, targets=[list(state.positions)])
         out.time("openral so10x_follower.read_state", hal.read_state)
-        with busy_python_thread():
-            out.time("openral so10x_follower.read_state, busy thread beside", hal.read_state)
+        time_beside_busy_thread(out, "so10x_follower", hal.read_state)
         out.time("openral so10x_follower.send_action", lambda: hal.send_action(hold))
         real = hal.bus
 
@@ -588,8 +612,7 @@ def lerobot_layers(port: str, out: Layers, folder: Path) -> None:
         out.time("LeRobot bus.sync_read normalised (degrees)", lambda: bus.sync_read("Present_Position"))
         out.time("LeRobot robot.get_observation()", robot.get_observation)
         out.time("openral lerobot_robot.read_state", hal.read_state)
-        with busy_python_thread():
-            out.time("openral lerobot_robot.read_state, busy thread beside", hal.read_state)
+        time_beside_busy_thread(out, "lerobot_robot", hal.read_state)
         state = hal.read_state()
         hold = Action(joint_names=state.names, targets=[list(state.positions)])
         out.time("SDK sync-write packet (bus._sync_write)", lambda: bus._sync_write(goal, length, raw_ids))
@@ -659,8 +682,8 @@ def sdk_mechanics(bus: Any, address: int, length: int, ids: list[int], pause_s: 
 def run_layers(calls: int, pause_s: float, with_lerobot: bool) -> None:
     print(
         f"layers: 6 servos on one emulated bus (own process), {calls} calls each, {pause_s * 1e3:.0f} ms pause "
-        "before each call; 'busy thread beside': one more Python thread always wanting the GIL "
-        f"(switch interval {sys.getswitchinterval() * 1e3:g} ms)"
+        "before each call; 'busy thread': one more Python thread always wanting the GIL, at the given GIL "
+        "switch interval"
     )
     out = Layers(calls, pause_s)
     with tempfile.TemporaryDirectory() as tmp, emulated_buses([range(1, 7)]) as ports:
@@ -695,6 +718,7 @@ LEROBOT_WRITE = (
 )
 OPENRAL_READ = ("openral FeetechBus.sync_read", "openral so10x_follower.read_state")
 OPENRAL_WRITE = ("openral FeetechBus.sync_write", "openral so10x_follower.send_action")
+HAL_NAMES = ("so10x_follower", "lerobot_robot")
 
 
 def print_breakdown(out: Layers) -> None:
@@ -714,12 +738,16 @@ def print_breakdown(out: Layers) -> None:
         f"({out.facts['SDK serial reads per sync read (port opened with timeout=0)']:.0f} serial reads, busy-polling), "
         f"openral FeetechBus.sync_read {bus.wall_p50_us:.0f}/{bus.cpu_p50_us:.0f} (1 blocking read)"
     )
-    ours, theirs = (out.timed_layer(f"openral {hal}.read_state, busy") for hal in ("so10x_follower", "lerobot_robot"))
-    print(
-        f"  with a busy Python thread beside, read_state p50/p99 µs: so10x_follower {ours.wall_p50_us:.0f}/"
-        f"{ours.wall_p99_us:.0f} ({ours.failed} failed), lerobot_robot {theirs.wall_p50_us:.0f}/"
-        f"{theirs.wall_p99_us:.0f} ({theirs.failed} failed) of {out.calls} calls"
-    )
+    for interval in SWITCH_INTERVALS_S:
+        at = f"switch {interval * 1e3:g} ms"
+        ours, theirs = (out.timed_layer(f"openral {hal}.read_state, busy thread, {at}") for hal in HAL_NAMES)
+        ours_loops, theirs_loops = (out.facts[f"busy thread's loops/s beside {hal}, {at}"] for hal in HAL_NAMES)
+        print(
+            f"  busy Python thread beside, {at}: read_state p50/p99 µs so10x_follower {ours.wall_p50_us:.0f}/"
+            f"{ours.wall_p99_us:.0f}, lerobot_robot {theirs.wall_p50_us:.0f}/{theirs.wall_p99_us:.0f} "
+            f"({ours.failed + theirs.failed} failed); the busy thread's loops/s beside them "
+            f"{ours_loops:.0f} and {theirs_loops:.0f}"
+        )
 
 
 # -- main ------------------------------------------------------------------------------------------
