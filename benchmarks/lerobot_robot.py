@@ -127,7 +127,8 @@ def emulated_buses(buses: Sequence[Sequence[int]]) -> Iterator[list[str]]:
         yield ports
     finally:
         for proc, parent in started:
-            parent.send(None)
+            with suppress(OSError):  # a child that died has closed its end
+                parent.send(None)
             proc.join(5)
             if proc.is_alive():
                 proc.terminate()
