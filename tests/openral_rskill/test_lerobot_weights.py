@@ -86,6 +86,8 @@ def test_an_unknown_policy_type_names_itself_and_the_known_ones_shortly(tmp_path
         LoadedPolicy(Checkpoint.read(str(folder)), device="cpu")
     text = str(caught.value)
     assert f"{folder / 'config.json'} names policy type 'actx'" in text
-    assert "act, diffusion" in text
+    assert "did you mean 'act'?" in text
+    known = text.split("known: ")[1].split(")", maxsplit=1)[0].split(", ")
+    assert {"act", "diffusion"} <= set(known)
     assert "<class" not in text
     assert len(text) < 600

@@ -15,6 +15,7 @@ read from what its configuration declares, so a plugin's type needs no list here
 
 from __future__ import annotations
 
+import difflib
 import os
 import re
 from collections.abc import Iterable, Sequence
@@ -156,9 +157,11 @@ class Checkpoint:
         """
         names = sorted(known)
         if self.policy_type not in names:
+            close = difflib.get_close_matches(self.policy_type, names, n=1)
+            suggestion = f"did you mean {close[0]!r}? " if close else ""
             raise ROSConfigError(
                 f"{self.path / 'config.json'} names policy type {self.policy_type!r}, which neither LeRobot nor an "
-                f"installed plugin registers (known: {', '.join(names)})",
+                f"installed plugin registers ({suggestion}known: {', '.join(names)})",
                 field=_FIELD,
                 hint=f"a plugin's policy type needs its package installed: pip install {PLUGIN_PREFIX}<name> "
                 f"(LeRobot imports every installed {PLUGIN_PREFIX}* package)",
