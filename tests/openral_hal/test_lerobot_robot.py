@@ -263,6 +263,38 @@ class GoalWatch:
                 self.running.set()
 
 
+def deploy_and_interrupt(deployment: Path, buses: list[ServoBusEmulator], deploy_process, ticks: int = 45) -> None:
+    """``openral deploy`` the file until every bus took ``ticks`` goals, then Ctrl-C; check what the servos did.
+
+    The servos followed every commanded goal while it ran, and every one is limp after the stop.
+    """
+    watches = [GoalWatch(bus, at=ticks) for bus in buses]
+    proc = deploy_process(["deploy", "--config", str(deployment), "--json"])
+    # Sample goal and position together while it runs: the servos follow what the ticks command.
+    while not all(watch.running.wait(0.02) for watch in watches):
+        assert proc.proc.poll() is None, proc.stderr
+        for watch in watches:
+            if watch.ticks:
+                watch.samples.append((watch.bus.goals(), watch.bus.positions()))
+    assert all(all(bus.torque().values()) for bus in buses)
+    proc.signal_group(signal.SIGINT)
+    code, stdout = proc.finish(timeout=60)
+    assert code == 130, proc.stderr
+    for bus in buses:
+        assert not any(bus.torque().values()), "Ctrl-C leaves every servo limp"
+    result = json.loads(stdout)
+    # Start-up writes up to two holds (goal := present) once torque is on; every other goal is a tick's.
+    assert result["n_ticks"] >= ticks - 2
+    assert result["effective_rate_hz"] == pytest.approx(30, rel=0.1)
+    for watch in watches:
+        goals = np.array([[g[i] for i in range(1, 7)] for g, _ in watch.samples])
+        positions = np.array([[q[i] for i in range(1, 7)] for _, q in watch.samples])
+        moving = np.ptp(goals, axis=0) > 20
+        assert moving.sum() >= 3, "the hello wave moves several joints of every arm"
+        # A servo at 3000 ticks/s reaches each 30 Hz goal of this slow wave within a few ticks of it.
+        assert np.abs(goals[:, moving] - positions[:, moving]).max() <= 40
+
+
 def test_deploy_runs_hello_through_lerobots_driver_and_sigint_leaves_torque_off(
     tmp_path: Path, bus: ServoBusEmulator, deploy_process
 ) -> None:
@@ -273,34 +305,24 @@ def test_deploy_runs_hello_through_lerobots_driver_and_sigint_leaves_torque_off(
     )
     path = tmp_path / "arm.yaml"
     path.write_text(text, encoding="utf-8")
-    watch = GoalWatch(bus, at=45)
-    proc = deploy_process(["deploy", "--config", str(path), "--json"])
-    # Sample goal and position together while it runs: the servos follow what the ticks command.
-    while not watch.running.wait(0.02):
-        assert proc.proc.poll() is None, proc.stderr
-        if watch.ticks:
-            watch.samples.append((bus.goals(), bus.positions()))
-    assert all(bus.torque().values())
-    proc.signal_group(signal.SIGINT)
-    code, stdout = proc.finish(timeout=60)
-    assert code == 130, proc.stderr
-    assert not any(bus.torque().values())
-    result = json.loads(stdout)
-    # Start-up writes up to two holds (goal := present) once torque is on; every other goal is a tick's.
-    assert result["n_ticks"] >= watch.at - 2
-    assert result["effective_rate_hz"] == pytest.approx(30, rel=0.1)
-    goals = np.array([[g[i] for i in range(1, 7)] for g, _ in watch.samples])
-    positions = np.array([[q[i] for i in range(1, 7)] for _, q in watch.samples])
-    moving = np.ptp(goals, axis=0) > 20
-    assert moving.sum() >= 3, "the hello wave moves several joints"
-    # A servo at 3000 ticks/s reaches each 30 Hz goal of this slow wave within a few ticks of it.
-    assert np.abs(goals[:, moving] - positions[:, moving]).max() <= 40
+    deploy_and_interrupt(path, [bus], deploy_process)
+
+
+def test_deploy_runs_a_bimanual_so101_on_two_buses_and_sigint_leaves_both_limp(tmp_path: Path, deploy_process) -> None:
+    write_calibration(tmp_path, "my_pair_left")
+    write_calibration(tmp_path, "my_pair_right")
+    with ServoBusEmulator(range(1, 7), initial_ticks=START) as left, ServoBusEmulator(range(1, 7)) as right:
+        text = (ROOT / "deployments" / "bi_so101_lerobot.yaml").read_text(encoding="utf-8")
+        text = text.replace("/dev/ttyACM0", left.port).replace("/dev/ttyACM1", right.port)
+        path = tmp_path / "pair.yaml"
+        path.write_text(text.replace("id: my_pair", f"id: my_pair\n    calibration_dir: {tmp_path}"), encoding="utf-8")
+        deploy_and_interrupt(path, [left, right], deploy_process)
 
 
 # -- a bimanual SO-101: two buses, one manifest ------------------------------------------------------
 
 
-def test_bimanual_so101_runs_on_two_buses_under_one_manifest(tmp_path: Path) -> None:
+def test_bimanual_so101_reads_each_arm_from_its_own_bus(tmp_path: Path) -> None:
     write_calibration(tmp_path, "pair_left")
     write_calibration(tmp_path, "pair_right")
     with ServoBusEmulator(range(1, 7), initial_ticks=START) as left, ServoBusEmulator(range(1, 7)) as right:
