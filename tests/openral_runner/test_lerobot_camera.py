@@ -449,3 +449,91 @@ def test_a_twin_deployment_with_a_lerobot_camera_hands_its_frames_to_the_skill(p
     assert published >= 30, published
     assert len(seqs) >= 0.65 * published, (len(seqs), published)
     assert lerobot_threads() == []
+
+
+# -- a camera from a third-party lerobot_camera_* package ------------------------------------------------
+
+PATTERN_CONFIG = """
+from dataclasses import dataclass
+
+from lerobot.cameras.configs import CameraConfig
+
+
+@CameraConfig.register_subclass("test_pattern")
+@dataclass
+class TestPatternCameraConfig(CameraConfig):
+    level: int = 100
+"""
+PATTERN_CAMERA = '''
+import time
+
+import numpy as np
+from lerobot.cameras.camera import Camera
+
+from .config_test_pattern import TestPatternCameraConfig
+
+
+class TestPatternCamera(Camera):
+    """Frames of one grey level at the configured rate; pixel (0, 0) counts them."""
+
+    def __init__(self, config: TestPatternCameraConfig) -> None:
+        super().__init__(config)
+        self.config = config
+        self.count = 0
+        self.connected = False
+        self.next_due = 0.0
+
+    @property
+    def is_connected(self) -> bool:
+        return self.connected
+
+    @staticmethod
+    def find_cameras() -> list:
+        return []
+
+    def connect(self, warmup: bool = True) -> None:
+        self.connected = True
+        self.next_due = time.monotonic()
+
+    def read(self):
+        return self.async_read()
+
+    def async_read(self, timeout_ms: float = 200):
+        time.sleep(max(0.0, self.next_due - time.monotonic()))
+        self.next_due += 1 / self.config.fps
+        frame = np.full((self.config.height, self.config.width, 3), self.config.level, dtype=np.uint8)
+        frame[0, 0] = self.count % 256
+        self.count += 1
+        return frame
+
+    def disconnect(self) -> None:
+        self.connected = False
+'''
+
+
+def test_a_camera_from_an_installed_lerobot_camera_package_delivers_frames(installed_package) -> None:
+    installed_package(
+        "lerobot_camera_test_pattern",
+        "from .config_test_pattern import TestPatternCameraConfig\nfrom .test_pattern import TestPatternCamera\n",
+        files={"config_test_pattern.py": PATTERN_CONFIG, "test_pattern.py": PATTERN_CAMERA},
+        importable=True,
+    )
+    config = SensorReaderConfig.model_validate(
+        {
+            "sensor_id": "pattern",
+            "backend": "lerobot_camera",
+            "width": WIDTH,
+            "height": HEIGHT,
+            "fps": 30,
+            "encoding": "rgb8",
+            "backend_params": {"type": "test_pattern", "level": 77},
+        }
+    )
+    reader = build(config)
+    with reader:
+        first = next_frame(reader, None)
+        second = next_frame(reader, first)
+    assert first.data.shape == (HEIGHT, WIDTH, 3)
+    assert int(first.data[1, 1, 0]) == 77
+    assert int(second.data[0, 0, 0]) > int(first.data[0, 0, 0]), "a new frame from the plugin's camera, not a repeat"
+    assert second.stamp_ns > first.stamp_ns
