@@ -17,8 +17,10 @@ bimanual device) are the follower's joints by name, converted from the motors' L
 to the manifest's radians by the same conversion as LeRobot robots under openral, so a leader's
 0..100 gripper spans the follower jaw's limits exactly as LeRobot's follower would.
 
-A teleoperator that gives no joint positions (a gamepad's or keyboard's end-effector deltas, key
-presses) is refused: a joint-position follower has no principled use for them.
+A gamepad or ``keyboard_ee`` gives end-effector deltas and a gripper action instead: each step
+moves the gripper from the last target (the measured pose at first) through the manifest's own
+kinematic chain (:mod:`openral_rskill.ee_deltas`). A device that gives neither joint positions nor
+end-effector deltas (a rover's velocities, raw key presses) is refused.
 """
 
 from __future__ import annotations
@@ -26,14 +28,16 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Mapping
-from typing import Any, Self
+from typing import Any, Protocol, Self
 
 import numpy as np
 import structlog
+from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core.actions import Action, ControlMode
+from openral_core.config import validate_model
 from openral_core.errors import ROSConfigError
-from openral_core.robot import RobotManifest
+from openral_core.robot import JointKind, RobotManifest
 from openral_core.skills import RSkillInfo
 from openral_core.world import WorldState
 from openral_hal.lerobot.calibration import require_calibration, write_calibration_where_it_differs
@@ -41,10 +45,73 @@ from openral_hal.lerobot.device_config import build_device_config, known_types, 
 from openral_hal.lerobot.motors import POSITION_SUFFIX, motor_buses, position_norms
 from openral_hal.lerobot.units import UnitConversion
 from openral_rskill.base import RSkillBase
+from openral_rskill.ee_deltas import AXES, EndEffectorDeltas
 
 SKILL_ID = "lerobot_teleop"
 FIELD = "vla.params"
 _LOG = structlog.get_logger(__name__)
+
+
+class TeleopOptions(BaseModel):
+    """openral's own keys beside the teleoperator's LeRobot config.
+
+    Attributes:
+        type: LeRobot's teleoperator type.
+        ee_step_m: For a device that gives end-effector deltas (gamepad, ``keyboard_ee``): metres
+            the gripper moves per step for a full deflection on one axis.
+        gripper_step_rad: For such a device: radians the jaw moves per step on open or close
+            (default: a quarter of its velocity limit).
+    """
+
+    model_config = ConfigDict(extra="ignore", frozen=True, allow_inf_nan=False)
+
+    type: str = Field(min_length=1)
+    ee_step_m: float = Field(default=0.004, gt=0, le=0.05)
+    gripper_step_rad: float | None = Field(default=None, gt=0, le=1.0)
+
+
+class ReadingMap(Protocol):
+    """What a teleoperator's reading means as the follower's joint targets."""
+
+    def reset(self) -> None:
+        """Forget any motion integrated so far (the next reading starts from the measured pose)."""
+
+    def targets(self, reading: Mapping[str, Any], world_state: WorldState) -> np.ndarray:
+        """The follower's joint targets, in the manifest's order and radians."""
+
+
+class JointPositionMap:
+    """A leader arm: each follower joint is the leader's motor of that name, in radians."""
+
+    def __init__(self, keys: list[str], conversion: UnitConversion) -> None:
+        self.keys = keys
+        self.conversion = conversion
+
+    def reset(self) -> None:
+        """Nothing integrates: every reading is a whole pose."""
+
+    def targets(self, reading: Mapping[str, Any], world_state: WorldState) -> np.ndarray:
+        values = np.fromiter((reading[key] for key in self.keys), dtype=np.float64, count=len(self.keys))
+        radians: np.ndarray = self.conversion.to_radians(values)
+        return radians
+
+
+class EndEffectorMap:
+    """A gamepad or keyboard: each reading moves the gripper from the last target (the measured pose at first)."""
+
+    def __init__(self, robot: RobotManifest, deltas: EndEffectorDeltas) -> None:
+        self.robot = robot
+        self.deltas = deltas
+        self._target: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self._target = None
+
+    def targets(self, reading: Mapping[str, Any], world_state: WorldState) -> np.ndarray:
+        if self._target is None:
+            self._target = _measured(self.robot, world_state)
+        self._target = self.deltas.step(self._target, reading)
+        return self._target
 
 
 class LeRobotTeleopSkill(RSkillBase):
@@ -68,21 +135,12 @@ class LeRobotTeleopSkill(RSkillBase):
         description="Commands the follower to the joint positions of a LeRobot leader device.",
     )
 
-    def __init__(
-        self,
-        robot: RobotManifest,
-        teleoperator: Any,
-        *,
-        type_name: str,
-        keys: list[str],
-        conversion: UnitConversion,
-    ) -> None:
+    def __init__(self, robot: RobotManifest, teleoperator: Any, *, type_name: str, mapping: ReadingMap) -> None:
         super().__init__()
         self.robot = robot
         self.teleoperator = teleoperator
         self.type_name = type_name
-        self.keys = keys
-        self.conversion = conversion
+        self.mapping = mapping
         self._names = robot.joint_names
 
     @classmethod
@@ -96,19 +154,20 @@ class LeRobotTeleopSkill(RSkillBase):
             ROSDependencyMissing: The ``lerobot`` extra is not installed.
         """
         require_lerobot(f"the {SKILL_ID} skill")
-        device_params = dict(params)
-        type_name = device_params.pop("type", None)
+        device_params = {k: v for k, v in params.items() if k not in TeleopOptions.model_fields}
+        type_name = params.get("type")
         if not isinstance(type_name, str) or not type_name:
             raise ROSConfigError(
                 "a LeRobot teleoperator needs its 'type'",
                 field=f"{FIELD}.type",
                 hint=f"known: {', '.join(known_types('teleoperator'))}",
             )
+        options = validate_model(TeleopOptions, dict(params), source=f"the {SKILL_ID} skill", field_prefix=FIELD)
         config = build_device_config("teleoperator", type_name, device_params, field=FIELD)
         teleoperator = make_device("teleoperator", config, field=FIELD)
-        keys, norms = _joint_keys(teleoperator, type_name, robot)
+        mapping = _reading_map(teleoperator, type_name, robot, options, rate_hz)
         require_calibration(teleoperator, kind="teleop", type_name=type_name, params=device_params, field=FIELD)
-        return cls(robot, teleoperator, type_name=type_name, keys=keys, conversion=UnitConversion(robot, norms))
+        return cls(robot, teleoperator, type_name=type_name, mapping=mapping)
 
     @property
     def info(self) -> RSkillInfo:
@@ -116,6 +175,7 @@ class LeRobotTeleopSkill(RSkillBase):
         return self.INFO
 
     def _on_activate(self) -> None:
+        self.mapping.reset()
         try:
             self.teleoperator.connect(calibrate=False)
             written = write_calibration_where_it_differs(self.teleoperator)
@@ -142,15 +202,52 @@ class LeRobotTeleopSkill(RSkillBase):
 
     def _step_impl(self, world_state: WorldState) -> Action:
         stamp = time.monotonic_ns()
-        reading = self.teleoperator.get_action()
-        values = np.fromiter((reading[key] for key in self.keys), dtype=np.float64, count=len(self.keys))
+        targets = self.mapping.targets(self.teleoperator.get_action(), world_state)
         return Action(
             control_mode=ControlMode.JOINT_POSITION,
             joint_names=self._names,
-            targets=[self.conversion.to_radians(values).tolist()],
+            targets=[targets.tolist()],
             stamp_ns=stamp,
             skill_id=SKILL_ID,
         )
+
+
+def _reading_map(
+    teleoperator: Any, type_name: str, robot: RobotManifest, options: TeleopOptions, rate_hz: float
+) -> ReadingMap:
+    """Joint positions for a leader arm; end-effector motion for a device that gives ``delta_x/y/z``."""
+    names = _action_names(teleoperator)
+    if set(AXES) <= set(names):
+        jaws = [j for j in robot.joints if j.kind is JointKind.GRIPPER]
+        gripper_step = options.gripper_step_rad or (jaws[0].velocity_limit / 4 / rate_hz if jaws else 0.0)
+        try:
+            deltas = EndEffectorDeltas(robot, step_m=options.ee_step_m, gripper_step_rad=gripper_step)
+        except ROSConfigError as exc:
+            raise ROSConfigError(
+                f"LeRobot's '{type_name}' teleoperator moves the end effector, and '{robot.robot_id}' has no "
+                f"kinematic chain to turn that into joint targets: {exc}",
+                field=f"{FIELD}.type",
+                hint="a manifest with a mujoco model and its ee_site, or a leader arm",
+            ) from exc
+        return EndEffectorMap(robot, deltas)
+    keys, norms = _joint_keys(teleoperator, type_name, robot)
+    return JointPositionMap(keys, UnitConversion(robot, norms))
+
+
+def _action_names(teleoperator: Any) -> list[str]:
+    """The keys of the teleoperator's readings (a gamepad declares them under ``names``)."""
+    features = dict(teleoperator.action_features)
+    named = features.get("names")
+    return list(named) if isinstance(named, Mapping) and "shape" in features else list(features)
+
+
+def _measured(robot: RobotManifest, world_state: WorldState) -> np.ndarray:
+    """The measured joint positions in the manifest's order (where an end-effector motion starts from)."""
+    state = world_state.joint_state
+    if state is None:
+        return np.array([min(max(0.0, j.lower), j.upper) for j in robot.joints])
+    by_name = dict(zip(state.names, state.positions, strict=True))
+    return np.array([by_name[name] for name in robot.joint_names], dtype=np.float64)
 
 
 def _joint_keys(teleoperator: Any, type_name: str, robot: RobotManifest) -> tuple[list[str], list[Any]]:

@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.usefixtures("quick_thread_switches")
@@ -25,12 +26,13 @@ from click.testing import CliRunner  # noqa: E402
 
 from openral_cli.main import cli  # noqa: E402
 from openral_core import RobotEnvironment, RobotManifest, ROSConfigError, TickResult  # noqa: E402
-from openral_core.world import WorldState  # noqa: E402
+from openral_core.world import JointState, WorldState  # noqa: E402
 from openral_hal.feetech import protocol as p  # noqa: E402
 from openral_hal.feetech.emulator import ServoBusEmulator  # noqa: E402
 from openral_hal.feetech.protocol import Register  # noqa: E402
+from openral_hal.kinematics import load_site_chain  # noqa: E402
 from openral_hal.manifests import load_robot_manifest  # noqa: E402
-from openral_rskill.lerobot_teleop import LeRobotTeleopSkill  # noqa: E402
+from openral_rskill.lerobot_teleop import EndEffectorMap, LeRobotTeleopSkill  # noqa: E402
 from openral_runner.factory import SKILL_REGISTRY, build_runner  # noqa: E402
 
 MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
@@ -237,9 +239,126 @@ def test_an_unknown_type_lists_the_known_ones(robot: RobotManifest) -> None:
         _skill(robot, {"port": "/dev/ttyACM7"})
 
 
-def test_a_teleoperator_without_joint_positions_is_refused(robot: RobotManifest) -> None:
-    with pytest.raises(ROSConfigError, match=r"'gamepad' teleoperator gives .*'names'.*not the joint positions"):
-        _skill(robot, {"type": "gamepad"})
+def test_lerobots_gamepad_builds_as_end_effector_motion_and_needs_a_kinematic_chain(robot: RobotManifest) -> None:
+    skill = _skill(robot, {"type": "gamepad", "ee_step_m": 0.01})
+    assert isinstance(skill.mapping, EndEffectorMap)
+    assert skill.mapping.deltas.step_m == 0.01
+    with pytest.raises(ROSConfigError, match=r"'gamepad' teleoperator moves the end effector.*bi_so101_follower"):
+        _skill(load_robot_manifest("bi_so101_follower"), {"type": "gamepad"})
+
+
+PAD_CONFIG = """
+from dataclasses import dataclass
+
+from lerobot.teleoperators.config import TeleoperatorConfig
+
+
+@TeleoperatorConfig.register_subclass("{type_name}")
+@dataclass
+class ScriptedPadConfig(TeleoperatorConfig):
+    delta_x: float = 0.0
+    delta_y: float = 0.0
+    delta_z: float = 0.0
+    gripper: int = 1
+    rover: bool = False
+"""
+PAD = """
+from lerobot.teleoperators.teleoperator import Teleoperator
+
+from .config_scripted_pad import ScriptedPadConfig
+
+
+class ScriptedPad(Teleoperator):
+    \"\"\"A gamepad held in one position: LeRobot's gamepad readings (deltas and a gripper action).\"\"\"
+
+    config_class = ScriptedPadConfig
+    name = "{type_name}"
+
+    def __init__(self, config):
+        super().__init__(config)
+        self.config = config
+        self.connected = False
+
+    @property
+    def action_features(self):
+        if self.config.rover:  # a keyboard_rover's readings: velocities of a wheeled base
+            return {"linear_velocity": float, "angular_velocity": float}
+        return {"dtype": "float32", "shape": (4,), "names": {"delta_x": 0, "delta_y": 1, "delta_z": 2, "gripper": 3}}
+
+    @property
+    def feedback_features(self):
+        return {}
+
+    @property
+    def is_connected(self):
+        return self.connected
+
+    def connect(self, calibrate=True):
+        self.connected = True
+
+    @property
+    def is_calibrated(self):
+        return True
+
+    def calibrate(self):
+        pass
+
+    def configure(self):
+        pass
+
+    def get_action(self):
+        c = self.config
+        return {"delta_x": c.delta_x, "delta_y": c.delta_y, "delta_z": c.delta_z, "gripper": c.gripper}
+
+    def send_feedback(self, feedback):
+        pass
+
+    def disconnect(self):
+        self.connected = False
+"""
+
+
+def install_pad(installed_package, type_name: str) -> None:
+    """A third-party teleoperator package registering ``type_name`` (LeRobot's registry keeps each name for good)."""
+    installed_package(
+        f"lerobot_teleoperator_{type_name}",
+        "from .config_scripted_pad import ScriptedPadConfig\nfrom .scripted_pad import ScriptedPad\n",
+        files={
+            "config_scripted_pad.py": PAD_CONFIG.replace("{type_name}", type_name),
+            "scripted_pad.py": PAD.replace("{type_name}", type_name),
+        },
+        importable=True,
+    )
+
+
+def test_a_teleoperator_of_neither_joints_nor_end_effector_deltas_is_refused(
+    robot: RobotManifest, installed_package
+) -> None:
+    install_pad(installed_package, "rover_pad")
+    with pytest.raises(ROSConfigError, match=r"'rover_pad' teleoperator gives .*linear_velocity.*not the joint"):
+        _skill(robot, {"type": "rover_pad", "rover": True})
+
+
+def test_end_effector_deltas_move_the_gripper_along_the_asked_axis(robot: RobotManifest, installed_package) -> None:
+    install_pad(installed_package, "scripted_pad")
+    start = [0.1, -0.4, 0.6, 0.3, 0.0, 0.2]
+    measured = WorldState(stamp_ns=0, joint_state=JointState(names=robot.joint_names, positions=start, stamp_ns=0))
+    chain = load_site_chain(robot)
+    for axis in range(3):
+        deltas = {"delta_x": 0.0, "delta_y": 0.0, "delta_z": 0.0} | {("delta_x", "delta_y", "delta_z")[axis]: 1.0}
+        skill = _skill(robot, {"type": "scripted_pad", "gripper": 2, "ee_step_m": 0.002, **deltas})
+        skill.configure()
+        skill.activate()
+        rows = [skill.step(measured).targets[0] for _ in range(10)]
+        skill.deactivate()
+        sites = np.array([chain.position(start), *(chain.position(row) for row in rows)])
+        travel = sites[-1] - sites[0]
+        # Ten steps of 2 mm along the asked axis, and (almost) nothing along the others.
+        assert travel[axis] == pytest.approx(0.02, abs=0.002)
+        assert np.abs(np.delete(travel, axis)).max() < 0.002
+        # The jaw opens one step per tick (a quarter of its velocity limit at 30 Hz).
+        jaw = robot.joints[-1]
+        assert rows[-1][-1] == pytest.approx(min(start[-1] + 10 * jaw.velocity_limit / 4 / 30, jaw.upper))
 
 
 def test_a_leader_with_other_joints_than_the_follower_is_refused(robot: RobotManifest) -> None:
