@@ -6,8 +6,8 @@ joint-position follower needs joint targets, so each step moves the end-effector
 ``step_m`` per unit along the asked axes with damped least squares on the site's Jacobian,
 from the manifest's own kinematic chain (the MJCF the twin and the envelope use; no MuJoCo at
 run time), and moves the jaw towards its open or closed limit by ``gripper_step_rad``. Targets
-stay within the joint limits; near a singularity the damping shortens the step instead of
-throwing the arm.
+stay within the joint limits, and no joint is asked to move faster than its velocity limit: near a
+singularity the damping and that cap shorten the step (its direction kept) instead of throwing the arm.
 """
 
 from __future__ import annotations
@@ -37,12 +37,13 @@ class EndEffectorDeltas:
         robot: The follower; its manifest names the MJCF and the end-effector site.
         step_m: Metres the site moves per step for a unit delta on one axis.
         gripper_step_rad: Radians the jaw moves per step on an open or close action.
+        rate_hz: Steps per second (each joint moves at most its velocity limit's worth per step).
 
     Raises:
         ROSConfigError: The manifest has no MJCF model with an end-effector site.
     """
 
-    def __init__(self, robot: RobotManifest, *, step_m: float, gripper_step_rad: float) -> None:
+    def __init__(self, robot: RobotManifest, *, step_m: float, gripper_step_rad: float, rate_hz: float) -> None:
         self.chain: SiteChain = load_site_chain(robot)
         self.step_m = step_m
         self.gripper_step_rad = gripper_step_rad
@@ -51,6 +52,7 @@ class EndEffectorDeltas:
         jaws = [i for i, j in enumerate(robot.joints) if j.kind is JointKind.GRIPPER]
         self._jaw = jaws[0] if jaws else None
         self._arm = [i for i, j in enumerate(robot.joints) if j.kind is not JointKind.GRIPPER]
+        self._max_step = np.array([robot.joints[i].velocity_limit / rate_hz for i in self._arm])
 
     def jacobian(self, row: np.ndarray) -> np.ndarray:
         """d(site position)/d(arm joints) at ``row`` (3 × arm joints), by central differences."""
@@ -69,7 +71,9 @@ class EndEffectorDeltas:
         if np.any(move):
             jacobian = self.jacobian(target)
             damped = jacobian @ jacobian.T + _DAMPING**2 * np.eye(3)
-            target[self._arm] += jacobian.T @ np.linalg.solve(damped, move)
+            joints = jacobian.T @ np.linalg.solve(damped, move)
+            joints *= min(1.0, float(np.min(self._max_step / np.maximum(np.abs(joints), 1e-12))))
+            target[self._arm] += joints
         gripper = round(float(action.get(GRIPPER, STAY)))
         if self._jaw is not None and gripper != STAY:
             target[self._jaw] += self.gripper_step_rad if gripper == OPEN else -self.gripper_step_rad

@@ -221,7 +221,7 @@ def _reading_map(
         jaws = [j for j in robot.joints if j.kind is JointKind.GRIPPER]
         gripper_step = options.gripper_step_rad or (jaws[0].velocity_limit / 4 / rate_hz if jaws else 0.0)
         try:
-            deltas = EndEffectorDeltas(robot, step_m=options.ee_step_m, gripper_step_rad=gripper_step)
+            deltas = EndEffectorDeltas(robot, step_m=options.ee_step_m, gripper_step_rad=gripper_step, rate_hz=rate_hz)
         except ROSConfigError as exc:
             raise ROSConfigError(
                 f"LeRobot's '{type_name}' teleoperator moves the end effector, and '{robot.robot_id}' has no "
