@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 
 import pytest
 
@@ -15,18 +14,6 @@ from openral_hal.feetech.bus import FeetechBus, ServoNoReply
 from openral_hal.feetech.emulator import ServoBusEmulator
 
 IDS = [1, 2, 3]
-
-
-@pytest.fixture
-def emu() -> Iterator[ServoBusEmulator]:
-    with ServoBusEmulator(IDS) as emulator:
-        yield emulator
-
-
-@pytest.fixture
-def bus(emu: ServoBusEmulator) -> Iterator[FeetechBus]:
-    with FeetechBus(emu.port, timeout_s=0.02, retries=2) as b:
-        yield b
 
 
 def test_ping_read_write(bus: FeetechBus, emu: ServoBusEmulator) -> None:

@@ -7,7 +7,7 @@ PING, the response level and an ID change, as the STS3215 memory table describes
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import pytest
 
@@ -21,18 +21,6 @@ from openral_hal.feetech.emulator import FACTORY_REGISTERS, ServoBusEmulator
 from openral_hal.feetech.protocol import Register
 
 IDS = [1, 2, 3]
-
-
-@pytest.fixture
-def emu() -> Iterator[ServoBusEmulator]:
-    with ServoBusEmulator(IDS) as emulator:
-        yield emulator
-
-
-@pytest.fixture
-def bus(emu: ServoBusEmulator) -> Iterator[FeetechBus]:
-    with FeetechBus(emu.port, timeout_s=0.02, retries=2) as b:
-        yield b
 
 
 def _read(bus: FeetechBus, servo_id: int, register: Register) -> int:

@@ -85,6 +85,13 @@ def _skill(robot: RobotManifest, params: dict[str, Any]) -> LeRobotTeleopSkill:
     return skill
 
 
+def _leader_skill(robot: RobotManifest, leader_bus: ServoBusEmulator, folder: Path) -> LeRobotTeleopSkill:
+    """LeRobot's SO-101 leader on the emulated bus, calibrated by ``folder``/leader.json."""
+    return _skill(
+        robot, {"type": "so101_leader", "port": leader_bus.port, "id": "leader", "calibration_dir": str(folder)}
+    )
+
+
 def _step(skill: LeRobotTeleopSkill) -> list[float]:
     action = skill.step(WorldState(stamp_ns=0))
     assert action.joint_names == [
@@ -107,9 +114,7 @@ def test_the_leaders_pose_is_the_followers_radians_by_lerobots_normalisation(
     robot: RobotManifest, leader_bus: ServoBusEmulator, tmp_path: Path
 ) -> None:
     write_calibration(tmp_path, "leader")
-    skill = _skill(
-        robot, {"type": "so101_leader", "port": leader_bus.port, "id": "leader", "calibration_dir": str(tmp_path)}
-    )
+    skill = _leader_skill(robot, leader_bus, tmp_path)
     skill.configure()
     skill.activate()
     try:
@@ -139,9 +144,7 @@ def test_the_actions_follow_the_played_motion(
     robot: RobotManifest, leader_bus: ServoBusEmulator, tmp_path: Path
 ) -> None:
     write_calibration(tmp_path, "leader")
-    skill = _skill(
-        robot, {"type": "so101_leader", "port": leader_bus.port, "id": "leader", "calibration_dir": str(tmp_path)}
-    )
+    skill = _leader_skill(robot, leader_bus, tmp_path)
     end_ticks = {**POSE_A, 4: 1200, 5: 2900, 6: 2600}  # every joint moves, the jaw inside its calibrated range
     start, end = expected_radians(robot, POSE_B), expected_radians(robot, end_ticks)
     skill.configure()
@@ -171,9 +174,7 @@ def test_deactivation_disconnects_and_the_skill_activates_again(
     robot: RobotManifest, leader_bus: ServoBusEmulator, tmp_path: Path
 ) -> None:
     write_calibration(tmp_path, "leader")
-    skill = _skill(
-        robot, {"type": "so101_leader", "port": leader_bus.port, "id": "leader", "calibration_dir": str(tmp_path)}
-    )
+    skill = _leader_skill(robot, leader_bus, tmp_path)
     skill.configure()
     skill.activate()
     assert skill.teleoperator.is_connected
