@@ -1,0 +1,189 @@
+"""Two benchmark reports compared row by row on the same seeds: success, its paired interval, McNemar, time.
+
+A row of A and a row of B are paired by scene; their episodes by seed. Rows that cannot be paired
+(a scene only one report ran, other seeds, another environment) are refused with what differs,
+never silently dropped: an unpaired comparison is not the comparison asked for. For each pair:
+
+* success of A and B, B − A in percentage points with Newcombe's paired 95 % interval, the
+  discordant pairs and the exact McNemar p (:mod:`openral_sim.benchmark.paired`);
+* steps to success on the seeds both solved: the mean of B − A, a paired bootstrap 95 % interval
+  (seeded, so a comparison prints the same numbers every time) and the exact sign test.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from openral_core import ROSConfigError
+from openral_sim.benchmark.paired import PairedTable, mcnemar_exact_p, newcombe_paired_interval
+
+SUCCESS_INTERVAL: Final = "newcombe_paired_method_10"
+STEPS_INTERVAL: Final = "paired_bootstrap_percentile"
+BOOTSTRAP_RESAMPLES: Final = 4000
+BOOTSTRAP_SEED: Final = 0
+PAIRED_FIELDS: Final = ("env", "env_id")
+"""What a row of A and its row of B must share besides the scene and the seeds."""
+
+
+def load_report(path: Path, *, field: str) -> dict[str, Any]:
+    """A ``benchmark run --out`` report, with every completed row's episodes (seed and outcome).
+
+    Raises:
+        ROSConfigError: Unreadable, not JSON, or without per-episode seeds (one line, naming ``field``).
+    """
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+        rows = document["results"]
+        for row in rows:
+            if row.get("status") == "completed":
+                for episode in row["episodes"]:
+                    int(episode["seed"]), bool(episode["success"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ROSConfigError(
+            f"{path} is not a benchmark report with per-episode seeds and outcomes ({type(exc).__name__}: {exc})",
+            field=field,
+            hint="write one with: openral benchmark run --config SUITE --out FILE",
+        ) from exc
+    if not isinstance(document, dict):
+        raise ROSConfigError(f"{path} is not a benchmark report", field=field)
+    return document
+
+
+def compare_reports(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
+    """Every scene both reports completed, A against B on the same seeds.
+
+    Raises:
+        ROSConfigError: A scene only one report completed, or paired rows that differ (environment,
+            seeds), named.
+    """
+    rows_a, rows_b = _completed_by_scene(a, "A"), _completed_by_scene(b, "B")
+    only = sorted(set(rows_a) ^ set(rows_b))
+    if only:
+        scene = only[0]
+        side, other = ("A", "B") if scene in rows_a else ("B", "A")
+        raise ROSConfigError(
+            f"scene {scene!r} is in {side}'s report and not in {other}'s: every row must have its pair",
+            field="B" if side == "A" else "A",
+            hint="run the same suite (scenes, seeds) for both policies",
+        )
+    return {
+        "a": _identity(a),
+        "b": _identity(b),
+        "success_interval": SUCCESS_INTERVAL,
+        "steps_interval": STEPS_INTERVAL,
+        "rows": [compare_rows(rows_a[scene], rows_b[scene]) for scene in sorted(rows_a)],
+    }
+
+
+def compare_rows(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
+    """One scene: A's row and B's, their episodes paired by seed.
+
+    Raises:
+        ROSConfigError: The rows differ in environment or seeds.
+    """
+    scene = a["scene"]
+    for key in (*PAIRED_FIELDS, "seeds"):
+        if a.get(key) != b.get(key):
+            raise ROSConfigError(
+                f"scene {scene!r}: A's row has {key} {a.get(key)!r} and B's {b.get(key)!r}; paired rows must agree",
+                field=f"B.results[{scene}].{key}",
+            )
+    episodes_a = {int(e["seed"]): e for e in a["episodes"]}
+    episodes_b = {int(e["seed"]): e for e in b["episodes"]}
+    if set(episodes_a) != set(episodes_b):
+        unpaired = sorted(set(episodes_a) ^ set(episodes_b))
+        raise ROSConfigError(
+            f"scene {scene!r}: {len(unpaired)} seed(s) ran in only one report (first: {unpaired[0]})",
+            field=f"B.results[{scene}].episodes",
+        )
+    seeds = sorted(episodes_a)
+    table = PairedTable.of(
+        [bool(episodes_a[s]["success"]) for s in seeds], [bool(episodes_b[s]["success"]) for s in seeds]
+    )
+    low, high = newcombe_paired_interval(table)
+    return {
+        "scene": scene,
+        "a": a.get("label"),
+        "b": b.get("label"),
+        "n_pairs": table.n,
+        "pc_success_a": 100.0 * table.rate_a,
+        "pc_success_b": 100.0 * table.rate_b,
+        "difference_pp": 100.0 * (table.rate_b - table.rate_a),
+        "difference_pp_ci95": [100.0 * low, 100.0 * high],
+        "discordant": {"only_a": table.only_a, "only_b": table.only_b},
+        "mcnemar_p": mcnemar_exact_p(table),
+        "steps_to_success": paired_steps(
+            [episodes_a[s].get("steps_to_success") for s in seeds],
+            [episodes_b[s].get("steps_to_success") for s in seeds],
+        ),
+    }
+
+
+def paired_steps(a: Sequence[int | None], b: Sequence[int | None]) -> dict[str, Any]:
+    """Steps to success on the seeds both solved: B − A's mean, its paired bootstrap interval, the sign test."""
+    differences = np.array([y - x for x, y in zip(a, b, strict=True) if x is not None and y is not None], dtype=float)
+    n = len(differences)
+    if n == 0:
+        return {"n_both_succeeded": 0, "mean_difference": None, "mean_difference_ci95": None, "sign_test_p": None}
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    means = differences[rng.integers(0, n, size=(BOOTSTRAP_RESAMPLES, n))].mean(axis=1)
+    faster, slower = int((differences < 0).sum()), int((differences > 0).sum())
+    return {
+        "n_both_succeeded": n,
+        "mean_difference": float(differences.mean()),
+        "mean_difference_ci95": [float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))],
+        "b_faster": faster,
+        "b_slower": slower,
+        "sign_test_p": mcnemar_exact_p(PairedTable(both=0, only_a=slower, only_b=faster, neither=0)),
+    }
+
+
+def comparison_lines(comparison: Mapping[str, Any]) -> list[str]:
+    """One line per scene for a terminal."""
+    lines = [f"A: {comparison['a']}   B: {comparison['b']}   (B − A; success interval: Newcombe, paired)"]
+    for row in comparison["rows"]:
+        low, high = row["difference_pp_ci95"]
+        steps = row["steps_to_success"]
+        timing = (
+            f"steps to success B − A {steps['mean_difference']:+.1f} (95 % CI {steps['mean_difference_ci95'][0]:+.1f} "
+            f"to {steps['mean_difference_ci95'][1]:+.1f}, {steps['n_both_succeeded']} seeds both solved)"
+            if steps["mean_difference"] is not None
+            else "no seed both solved"
+        )
+        lines.append(
+            f"{row['scene']}: {row['pc_success_a']:.1f} % → {row['pc_success_b']:.1f} %, "
+            f"{row['difference_pp']:+.1f} pp (95 % CI {low:+.1f} to {high:+.1f}), "
+            f"McNemar p {_p(row['mcnemar_p'])} ({row['discordant']['only_a']} only A, "
+            f"{row['discordant']['only_b']} only B of {row['n_pairs']}); {timing}"
+        )
+    return lines
+
+
+def _p(value: float) -> str:
+    return f"{value:.2g}" if value < 0.01 else f"{value:.3f}"
+
+
+def _completed_by_scene(document: Mapping[str, Any], side: str) -> dict[str, Mapping[str, Any]]:
+    rows: dict[str, Mapping[str, Any]] = {}
+    for row in document.get("results", []):
+        if row.get("status") != "completed":
+            continue
+        scene = str(row["scene"])
+        if scene in rows:
+            raise ROSConfigError(
+                f"{side}'s report has two completed rows of scene {scene!r}; compare reports of one policy each",
+                field=side,
+            )
+        rows[scene] = row
+    return rows
+
+
+def _identity(document: Mapping[str, Any]) -> dict[str, Any]:
+    """Which run a report is: its suite and the skills of its rows."""
+    skills = sorted({str(row.get("skill")) for row in document.get("results", [])})
+    return {"suite": document.get("suite"), "skills": skills}

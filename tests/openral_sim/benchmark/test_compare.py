@@ -1,0 +1,113 @@
+"""``openral benchmark compare``: two reports paired by scene and seed, refused where they cannot be."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from openral_cli.main import cli
+from openral_core import ROSConfigError
+from openral_sim.benchmark.compare import compare_reports, load_report, paired_steps
+
+ROOT = Path(__file__).resolve().parents[3]
+MOCK_SCENE = ROOT / "scenes" / "sim" / "mock_reach.yaml"
+
+
+def report(skill: str, outcomes: list[tuple[bool, int | None]], **row: Any) -> dict[str, Any]:
+    """A report of one completed row on scene ``pick`` whose episode k has seed k."""
+    episodes = [
+        {"episode_idx": k, "seed": k, "success": ok, "steps": 100, "steps_to_success": steps}
+        for k, (ok, steps) in enumerate(outcomes)
+    ]
+    base = {"label": f"pick/{skill}", "scene": "pick", "env": "so101", "env_id": "pick", "skill": skill}
+    base |= {"seeds": [0, len(episodes) - 1], "status": "completed", "episodes": episodes, **row}
+    return {"suite": "s", "results": [base]}
+
+
+def test_success_is_compared_on_the_same_seeds() -> None:
+    a = report("a", [(True, 50)] * 6 + [(False, None)] * 14)
+    b = report("b", [(True, 40)] * 6 + [(True, 60)] * 9 + [(False, None)] * 5)
+    (row,) = compare_reports(a, b)["rows"]
+    assert row["n_pairs"] == 20
+    assert (row["pc_success_a"], row["pc_success_b"]) == (30.0, 75.0)
+    assert row["difference_pp"] == pytest.approx(45.0)
+    assert row["discordant"] == {"only_a": 0, "only_b": 9}
+    assert row["mcnemar_p"] == pytest.approx(2 / 2**9)
+    low, high = row["difference_pp_ci95"]
+    assert 0 < low < 45 < high < 100
+    steps = row["steps_to_success"]
+    assert steps["n_both_succeeded"] == 6
+    assert steps["mean_difference"] == -10.0
+    assert steps["b_faster"] == 6
+    assert steps["sign_test_p"] == pytest.approx(2 / 2**6)
+
+
+def test_episodes_pair_by_seed_not_by_position() -> None:
+    a = report("a", [(True, 10), (False, None)])
+    b = report("b", [(True, 10), (False, None)])
+    b["results"][0]["episodes"].reverse()
+    (row,) = compare_reports(a, b)["rows"]
+    assert row["discordant"] == {"only_a": 0, "only_b": 0}
+
+
+def test_the_bootstrap_interval_is_seeded_and_brackets_the_mean() -> None:
+    a = [30, 40, 50, 60, 70, None]
+    b = [25, 41, 44, 58, 61, 80]
+    first, second = paired_steps(a, b), paired_steps(a, b)
+    assert first == second
+    low, high = first["mean_difference_ci95"]
+    assert first["mean_difference"] == pytest.approx(-4.2)
+    assert low < -4.2 < high
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"env_id": "place"}, "env_id 'pick' and B's 'place'"),
+        ({"seeds": [0, 99]}, "seeds"),
+        ({"scene": "push"}, "scene 'pick' is in A's report and not in B's"),
+    ],
+)
+def test_rows_that_cannot_be_paired_are_refused_naming_the_difference(change: dict[str, Any], words: str) -> None:
+    a = report("a", [(True, 5)] * 4)
+    b = report("b", [(True, 5)] * 4, **change)
+    with pytest.raises(ROSConfigError, match=words):
+        compare_reports(a, b)
+
+
+def test_seeds_in_one_report_only_are_refused() -> None:
+    a = report("a", [(True, 5)] * 4)
+    b = report("b", [(True, 5)] * 4)
+    b["results"][0]["episodes"][-1]["seed"] = 40
+    with pytest.raises(ROSConfigError, match=r"2 seed\(s\) ran in only one report \(first: 3\)"):
+        compare_reports(a, b)
+
+
+def test_a_file_that_is_no_report_is_refused_in_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps({"results": [{"status": "completed", "scene": "x", "episodes": [{"success": True}]}]}))
+    with pytest.raises(ROSConfigError, match=r"^A: .*not a benchmark report with per-episode seeds"):
+        load_report(path, field="A")
+
+
+def test_compare_two_runs_of_a_suite_from_the_command_line(tmp_path: Path) -> None:
+    out = {}
+    for skill in ("zero", "mock_reach_expert"):
+        suite = tmp_path / f"{skill}.yaml"
+        suite.write_text(f"name: reach\nruns:\n  - {{scene: {MOCK_SCENE}, skill: {skill}, n_episodes: 8}}\n")
+        out[skill] = tmp_path / f"{skill}.json"
+        result = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--out", str(out[skill])])
+        assert result.exit_code == 0, result.output
+    result = CliRunner().invoke(
+        cli, ["benchmark", "compare", str(out["zero"]), str(out["mock_reach_expert"]), "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    (row,) = json.loads(result.output)["rows"]
+    assert (row["pc_success_a"], row["pc_success_b"]) == (0.0, 100.0)
+    assert row["mcnemar_p"] == pytest.approx(2 / 2**8)
+    text = CliRunner().invoke(cli, ["benchmark", "compare", str(out["zero"]), str(out["mock_reach_expert"])])
+    assert "mock_reach: 0.0 % → 100.0 %, +100.0 pp (95 % CI +54.1 to +100.0), McNemar p 0.0078" in text.output
