@@ -104,6 +104,7 @@ def build_device_config(kind: DeviceKind, type_name: str, params: Mapping[str, A
     Raises:
         ROSConfigError: An unknown type, an unknown or missing key, or a value LeRobot refuses.
     """
+    require_lerobot(f"LeRobot {kind}s")
     import draccus  # noqa: PLC0415  (the extra)
 
     config_class = device_config_class(kind, type_name, field=field)

@@ -47,7 +47,7 @@ from openral_hal.feetech import protocol as feetech
 from openral_hal.feetech.protocol import Register
 from openral_hal.joints import JointIndex
 from openral_hal.lerobot.calibration import require_calibration, write_calibration_where_it_differs
-from openral_hal.lerobot.device_config import build_device_config, make_device
+from openral_hal.lerobot.device_config import build_device_config, make_device, require_lerobot
 from openral_hal.lerobot.motors import POSITION_SUFFIX, motor_buses, position_norms
 from openral_hal.lerobot.ports import PortLocks
 from openral_hal.lerobot.units import JointUnits, MotorNorm, UnitConversion, arm_norms
@@ -89,6 +89,7 @@ class LeRobotRobotHAL:
     adapter = ADAPTER
 
     def __init__(self, manifest: RobotManifest, params: Mapping[str, Any] | None = None) -> None:
+        require_lerobot(f"the {ADAPTER} HAL")
         given = dict(params or {})
         options = validate_model(LeRobotRobotOptions, given, source=f"the {ADAPTER} HAL", field_prefix=FIELD)
         lerobot_params = {k: v for k, v in given.items() if k not in LeRobotRobotOptions.model_fields}
