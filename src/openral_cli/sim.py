@@ -235,7 +235,8 @@ def benchmark() -> None:
     "baseline_path",
     type=click.Path(path_type=Path, dir_okay=False),
     default=None,
-    help="The JSON (--out) of a --workers 1 run of this suite on this machine: rows get speedup and efficiency.",
+    help="An earlier run's JSON (--out): compared with this run on the same seeds when their rows pair; "
+    "a --workers 1 run of this suite on this machine also gives rows their speedup and efficiency.",
 )
 @click.option(
     "--serve",
@@ -285,7 +286,8 @@ def benchmark_run(
     started = time.perf_counter()
     # The simulation stack loads for the simulation commands only.
     from openral_sim import report_files  # noqa: PLC0415
-    from openral_sim.benchmark.baseline import load_baseline  # noqa: PLC0415
+    from openral_sim.benchmark.baseline import check_baseline, compare_with, load_baseline  # noqa: PLC0415
+    from openral_sim.benchmark.compare import comparison_lines  # noqa: PLC0415
     from openral_sim.benchmark.provenance import provenance  # noqa: PLC0415
     from openral_sim.benchmark.report import markdown_table, suite_document, table_line  # noqa: PLC0415
     from openral_sim.benchmark.rows import load_rows  # noqa: PLC0415
@@ -305,6 +307,7 @@ def benchmark_run(
         baseline = load_baseline(baseline_path) if baseline_path is not None else None
         hasher = hashlib.sha256(config_path.read_bytes())
         rows = load_rows(suite, config_path, hasher, render_all=video_dir is not None)
+        compare = baseline is not None and check_baseline(baseline, rows)
         processes = workers
         if ray_address is None:
             processes, note = worker_processes(workers, rows)
@@ -316,7 +319,7 @@ def benchmark_run(
                 rows,
                 evaluator,
                 started=started,
-                baseline=baseline,
+                baseline=baseline.rows if baseline is not None and baseline.one_process else None,
                 serve=serving,
                 video_dir=video_dir,
                 videos=suite.videos,
@@ -336,6 +339,8 @@ def benchmark_run(
                 baseline=baseline_path,
             ),
         )
+        if compare and baseline is not None and outcome.error is None:
+            document["comparison"] = compare_with(baseline, document)
         text = json.dumps(document, indent=2)
         if out is not None:
             report_files.write_whole(out, text + "\n", what="the JSON report")
@@ -345,15 +350,14 @@ def benchmark_run(
             click.echo(text)
         else:
             click.echo(markdown_table(outcome.results, evaluator.processes))
+            for line in comparison_lines(document["comparison"]) if "comparison" in document else []:
+                click.echo(line)
         if outcome.error is not None:
             raise outcome.error
         if outcome.below_min_success:
             click.echo("below --min-success: " + "; ".join(outcome.below_min_success), err=True)
             code = EXIT_RUNTIME
     raise SystemExit(code)
-
-
-__all__ = ["benchmark", "sim"]
 
 
 @benchmark.command("compare")
@@ -385,3 +389,6 @@ def benchmark_compare(ctx: click.Context, *, report_a: Path, report_b: Path, out
         else:
             for line in comparison_lines(comparison):
                 click.echo(line)
+
+
+__all__ = ["benchmark", "sim"]

@@ -245,10 +245,18 @@ def test_benchmark_run_reports_episodes_per_second_and_efficiency_against_a_one_
     assert document["startup_s"] + row["wall_s"] <= document["wall_s"]
     assert f"{row['episodes_per_s']:.2f} | {row['efficiency']:.2f} ({row['speedup']:.2f}× on 2) |" in result.output
 
-    # A report of several workers is no one-process reference.
-    refused = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--baseline", str(two)])
+    # A report of several workers is no speed reference; the same suite on the same seeds pairs with it.
+    compared = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--baseline", str(two), "--json"])
+    assert compared.exit_code == 0, compared.output
+    again = json.loads(compared.output)
+    assert again["results"][0]["speedup"] is None
+    (pair,) = again["comparison"]["rows"]
+    assert (pair["difference_pp"], pair["mcnemar_p"]) == (0.0, 1.0)
+    other = _suite(tmp_path, f"{{scene: {MOCK_SCENE}, skill: mock_reach_expert, n_episodes: 3}}")
+    refused = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(other), "--baseline", str(two)])
     assert refused.exit_code == 2
-    assert "error: --baseline: the baseline must be a --workers 1 run" in refused.output
+    assert "error: --baseline: the baseline is neither a --workers 1 run" in refused.output
+    assert "seeds [0, 5] in the baseline, [0, 2] here" in refused.output
 
 
 def test_benchmark_refuses_a_baseline_without_the_suites_rows(tmp_path: Path) -> None:

@@ -1,36 +1,55 @@
-"""A one-process run's report as the reference that rows' speed-up and efficiency are measured against."""
+"""The reference run of ``benchmark run --baseline``: for speed-ups, and for a paired comparison.
+
+A baseline is an earlier ``--out`` report. When it is a one-process run (``--workers 1``, no Ray)
+of the same rows, each row gets its speed-up and per-worker efficiency against it. When its rows
+pair with this run's (one row per scene on each side, the same environment and seeds), the
+report also compares this run (B) with it (A) on the same seeds
+(:mod:`openral_sim.benchmark.compare`). A report that serves neither use is refused before any
+episode runs.
+"""
 
 from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from openral_core import ROSConfigError
+from openral_sim.benchmark.compare import PAIRED_FIELDS, compare_reports
 from openral_sim.benchmark.rows import SuiteRow
 
 BASELINE_OPTION = "--baseline"
 
 
-def load_baseline(path: Path) -> list[dict[str, Any]]:
-    """The rows of a one-process run's report, to measure speed-ups against.
+@dataclass(frozen=True)
+class Baseline:
+    """An earlier run's report, and whether it is a one-process run (a speed reference)."""
+
+    document: dict[str, Any]
+    one_process: bool
+
+    @property
+    def rows(self) -> list[dict[str, Any]]:
+        """The report's rows (``results``)."""
+        return list(self.document["results"])
+
+
+def load_baseline(path: Path) -> Baseline:
+    """An earlier ``benchmark run --out`` report.
 
     Raises:
-        ROSConfigError: Not such a report (unreadable, not JSON, or not run with ``--workers 1`` here).
+        ROSConfigError: Not such a report (unreadable, not JSON, no results or provenance).
     """
     try:
         document = json.loads(path.read_text(encoding="utf-8"))
         provenance = document["provenance"]
         one_process = provenance["workers"] == 1 and provenance["ray"] is None
-        rows = document["results"]
+        list(document["results"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ROSConfigError(f"not a benchmark report: {exc}", field=BASELINE_OPTION) from exc
-    if not one_process:
-        raise ROSConfigError(
-            "the baseline must be a --workers 1 run without --ray (the one-process reference)", field=BASELINE_OPTION
-        )
-    return list(rows)
+    return Baseline(document, bool(one_process))
 
 
 def references(baseline: Sequence[dict[str, Any]], rows: Sequence[SuiteRow]) -> dict[str, float]:
@@ -51,3 +70,47 @@ def references(baseline: Sequence[dict[str, Any]], rows: Sequence[SuiteRow]) -> 
             )
         found[row.label] = float(reference["episodes_per_s"])
     return found
+
+
+def pairing_problem(baseline: Baseline, rows: Sequence[SuiteRow]) -> str | None:
+    """Why this run cannot be compared with the baseline on the same seeds, or ``None`` when it can."""
+    scenes = [row.scene.name for row in rows]
+    repeated = sorted({scene for scene in scenes if scenes.count(scene) > 1})
+    if repeated:
+        return f"this suite runs scene {repeated[0]!r} in more than one row"
+    completed: dict[str, list[dict[str, Any]]] = {}
+    for reference in baseline.rows:
+        if reference.get("status") == "completed":
+            completed.setdefault(str(reference.get("scene")), []).append(reference)
+    for row in rows:
+        found = completed.get(row.scene.name, [])
+        if len(found) != 1:
+            return f"the baseline has {len(found)} completed rows of scene {row.scene.name!r}, not one"
+        head = row.head()
+        for key in (*PAIRED_FIELDS, "seeds"):
+            if found[0].get(key) != head[key]:
+                return f"scene {row.scene.name!r} has {key} {found[0].get(key)!r} in the baseline, {head[key]!r} here"
+    return None
+
+
+def check_baseline(baseline: Baseline, rows: Sequence[SuiteRow]) -> bool:
+    """Whether this run will be compared with the baseline; refuses a baseline of no use.
+
+    Raises:
+        ROSConfigError: Neither a one-process run (for speed-ups) nor pairable with this run.
+    """
+    problem = pairing_problem(baseline, rows)
+    if problem is not None and not baseline.one_process:
+        raise ROSConfigError(
+            f"the baseline is neither a --workers 1 run (for speed-ups) nor a run this one pairs with: {problem}",
+            field=BASELINE_OPTION,
+            hint="run the same suite (scenes and seeds) with another policy, or with --workers 1, and --out FILE",
+        )
+    return problem is None
+
+
+def compare_with(baseline: Baseline, document: dict[str, Any]) -> dict[str, Any]:
+    """This run's report (B) compared with the baseline's rows of the same scenes (A)."""
+    scenes = {row.get("scene") for row in document["results"] if row.get("status") == "completed"}
+    reference = {**baseline.document, "results": [row for row in baseline.rows if row.get("scene") in scenes]}
+    return compare_reports(reference, document)

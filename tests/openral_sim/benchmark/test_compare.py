@@ -111,3 +111,23 @@ def test_compare_two_runs_of_a_suite_from_the_command_line(tmp_path: Path) -> No
     assert row["mcnemar_p"] == pytest.approx(2 / 2**8)
     text = CliRunner().invoke(cli, ["benchmark", "compare", str(out["zero"]), str(out["mock_reach_expert"])])
     assert "mock_reach: 0.0 % → 100.0 %, +100.0 pp (95 % CI +54.1 to +100.0), McNemar p 0.0078" in text.output
+
+
+def test_benchmark_run_with_a_baseline_compares_in_the_same_run(tmp_path: Path) -> None:
+    suites = {}
+    for skill in ("zero", "mock_reach_expert"):
+        suites[skill] = tmp_path / f"{skill}.yaml"
+        suites[skill].write_text(f"name: reach\nruns:\n  - {{scene: {MOCK_SCENE}, skill: {skill}, n_episodes: 6}}\n")
+    baseline = tmp_path / "zero.json"
+    first = CliRunner().invoke(
+        cli, ["benchmark", "run", "--config", str(suites["zero"]), "--workers", "2", "--out", str(baseline)]
+    )
+    assert first.exit_code == 0, first.output
+    result = CliRunner().invoke(
+        cli, ["benchmark", "run", "--config", str(suites["mock_reach_expert"]), "--baseline", str(baseline), "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.output)
+    (row,) = document["comparison"]["rows"]
+    assert (row["pc_success_a"], row["pc_success_b"], row["mcnemar_p"]) == (0.0, 100.0, pytest.approx(2 / 2**6))
+    assert "speedup" not in document["results"][0] or document["results"][0]["speedup"] is None
