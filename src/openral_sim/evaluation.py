@@ -30,6 +30,7 @@ import structlog
 
 from openral_core import EpisodeResult, ObserverConfig, ROSDependencyMissing, SimEnvironment
 from openral_sim.build import EpisodeBatch, SimCache, SkillFailed
+from openral_sim.time_to_success import time_to_success
 
 _log = structlog.get_logger(__name__)
 
@@ -362,6 +363,9 @@ def throughput(
 def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = None) -> dict[str, Any]:
     """LeRobot's aggregates (``pc_success``, ``avg_sum_reward``, ``avg_max_reward``) and the Wilson 95 % interval.
 
+    ``steps_to_success`` summarises the successful episodes only (LeRobot's view); ``time_to_success``
+    counts every episode, failures censored at the limit (:mod:`openral_sim.time_to_success`).
+
     With the ``batch``, also the tick and inference times' percentiles and histograms
     (:func:`latency_histogram`), which is all a report keeps of the per-step samples.
     """
@@ -380,6 +384,7 @@ def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = No
             "mean": float(np.mean(to_success)) if to_success else None,
             "p50": float(np.median(to_success)) if to_success else None,
         },
+        "time_to_success": time_to_success([e.steps_to_success for e in episodes]),
     }
     if batch is not None:
         summary["tick_ms"] = _percentiles(batch.tick_ms)

@@ -130,4 +130,9 @@ def test_benchmark_run_with_a_baseline_compares_in_the_same_run(tmp_path: Path) 
     document = json.loads(result.output)
     (row,) = document["comparison"]["rows"]
     assert (row["pc_success_a"], row["pc_success_b"], row["mcnemar_p"]) == (0.0, 100.0, pytest.approx(2 / 2**6))
-    assert "speedup" not in document["results"][0] or document["results"][0]["speedup"] is None
+    assert document["results"][0]["speedup"] is None  # a run of two workers is no speed reference
+    # Every episode counts in time to success: the expert's half-way step exists, the zero policy's never does.
+    solved = document["results"][0]["time_to_success"]
+    assert solved["p50"] is not None
+    assert solved["solved_by"][-1][1] == 1.0
+    assert json.loads(baseline.read_text())["results"][0]["time_to_success"]["p50"] is None
