@@ -364,9 +364,18 @@ def benchmark_run(
 @click.argument("report_a", type=click.Path(path_type=Path, dir_okay=False))
 @click.argument("report_b", type=click.Path(path_type=Path, dir_okay=False))
 @click.option("--out", type=click.Path(path_type=Path, dir_okay=False), default=None, help="Write the JSON here.")
+@click.option(
+    "--html",
+    "html_path",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="Also write A and B side by side as one self-contained HTML page.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the comparison as JSON on stdout, nothing else.")
 @click.pass_context
-def benchmark_compare(ctx: click.Context, *, report_a: Path, report_b: Path, out: Path | None, as_json: bool) -> None:
+def benchmark_compare(
+    ctx: click.Context, *, report_a: Path, report_b: Path, out: Path | None, html_path: Path | None, as_json: bool
+) -> None:
     """Compare two reports (--out of benchmark run) of the same suite, scene by scene on the same seeds.
 
     Success of B − A with Newcombe's paired 95 % interval and the exact McNemar test on the
@@ -374,16 +383,20 @@ def benchmark_compare(ctx: click.Context, *, report_a: Path, report_b: Path, out
     test). Rows that cannot be paired (a scene or seed in one report only, another environment)
     are refused, naming what differs.
     """
-    from openral_sim import report_files  # noqa: PLC0415
+    from openral_sim import html_comparison, report_files  # noqa: PLC0415
     from openral_sim.benchmark.compare import compare_reports, comparison_lines, load_report  # noqa: PLC0415
 
     with exit_codes(bool(ctx.obj["debug"])):
         if out is not None:
             report_files.check_output_file(out, option="--out", example_name="comparison.json")
+        if html_path is not None:
+            report_files.check_output_file(html_path, option="--html", example_name="comparison.html")
         comparison = compare_reports(load_report(report_a, field="A"), load_report(report_b, field="B"))
         text = json.dumps(comparison, indent=2)
         if out is not None:
-            out.write_text(text + "\n", encoding="utf-8")
+            report_files.write_whole(out, text + "\n", what="the JSON comparison")
+        if html_path is not None:
+            html_comparison.write(comparison, html_path)
         if as_json:
             click.echo(text)
         else:

@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from openral_sim import html_figures, report_files
+from openral_sim import html_comparison, html_figures, report_files
 
 Document = Mapping[str, Any]
 
@@ -80,6 +80,7 @@ def render(document: Document) -> str:
         "<h2>Results</h2>",
         f'<div class="wide">{_results_table(results)}</div>',
         "</section>",
+        *([html_comparison.comparison_section(document["comparison"])] if document.get("comparison") else []),
         *_figures(completed),
         '<section id="provenance">',
         "<h2>Provenance</h2>",

@@ -117,6 +117,8 @@ def compare_rows(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
         "difference_pp_ci95": [100.0 * low, 100.0 * high],
         "discordant": {"only_a": table.only_a, "only_b": table.only_b},
         "mcnemar_p": mcnemar_exact_p(table),
+        "time_to_success_a": a.get("time_to_success"),
+        "time_to_success_b": b.get("time_to_success"),
         "steps_to_success": paired_steps(
             [episodes_a[s].get("steps_to_success") for s in seeds],
             [episodes_b[s].get("steps_to_success") for s in seeds],

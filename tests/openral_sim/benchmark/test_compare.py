@@ -123,9 +123,9 @@ def test_benchmark_run_with_a_baseline_compares_in_the_same_run(tmp_path: Path) 
         cli, ["benchmark", "run", "--config", str(suites["zero"]), "--workers", "2", "--out", str(baseline)]
     )
     assert first.exit_code == 0, first.output
-    result = CliRunner().invoke(
-        cli, ["benchmark", "run", "--config", str(suites["mock_reach_expert"]), "--baseline", str(baseline), "--json"]
-    )
+    page = tmp_path / "expert.html"
+    expert = ["benchmark", "run", "--config", str(suites["mock_reach_expert"]), "--baseline", str(baseline)]
+    result = CliRunner().invoke(cli, [*expert, "--json", "--html", str(page)])
     assert result.exit_code == 0, result.output
     document = json.loads(result.output)
     (row,) = document["comparison"]["rows"]
@@ -136,3 +136,25 @@ def test_benchmark_run_with_a_baseline_compares_in_the_same_run(tmp_path: Path) 
     assert solved["p50"] is not None
     assert solved["solved_by"][-1][1] == 1.0
     assert json.loads(baseline.read_text())["results"][0]["time_to_success"]["p50"] is None
+    # The run's own page carries the comparison beside its results.
+    text = page.read_text(encoding="utf-8")
+    assert '<section id="comparison">' in text
+    assert "+100.0 pp" in text
+
+
+def test_the_html_page_shows_a_and_b_side_by_side_and_escapes_what_users_named(tmp_path: Path) -> None:
+    a = report("a", [(True, 50)] * 6 + [(False, None)] * 14, scene="<b>pick</b>")
+    b = report("b", [(True, 40)] * 6 + [(True, 60)] * 9 + [(False, None)] * 5, scene="<b>pick</b>")
+    paths = [tmp_path / "a.json", tmp_path / "b.json"]
+    for path, document in zip(paths, (a, b), strict=True):
+        path.write_text(json.dumps(document), encoding="utf-8")
+    page_path = tmp_path / "ab.html"
+    result = CliRunner().invoke(cli, ["benchmark", "compare", *map(str, paths), "--html", str(page_path)])
+    assert result.exit_code == 0, result.output
+    page = page_path.read_text(encoding="utf-8")
+    assert "&lt;b&gt;pick&lt;/b&gt;" in page
+    assert "<b>pick" not in page
+    for text in ("30.0 %", "75.0 %", "+45.0 pp", "0 / 9 / 20", "-10.0"):
+        assert text in page, text
+    assert "<script" not in page
+    assert "http" not in page, "the page fetches nothing"
