@@ -408,3 +408,19 @@ def quick_thread_switches() -> Iterator[None]:
     sys.setswitchinterval(1e-4)
     yield
     sys.setswitchinterval(interval)
+
+
+WITHOUT_LEROBOT = """
+import importlib.abc, sys
+
+
+class Blocker(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in {"lerobot", "draccus", "torch"}:
+            raise ModuleNotFoundError(f"No module named {name!r} (blocked)", name=name)
+        return None
+
+
+sys.meta_path.insert(0, Blocker())
+"""
+"""Python that makes the rest of a ``python -c`` program run as if the ``lerobot`` extra were not installed."""

@@ -11,26 +11,19 @@ import sys
 from pathlib import Path
 
 import pytest
+from tests.conftest import WITHOUT_LEROBOT
 
 ROOT = Path(__file__).resolve().parents[2]
 
-VALIDATE_WITHOUT_LEROBOT = """
-import importlib.abc, sys
-
-
-class Blocker(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in {"lerobot", "draccus", "torch"}:
-            raise ModuleNotFoundError(f"No module named {name!r} (blocked)", name=name)
-        return None
-
-
-sys.meta_path.insert(0, Blocker())
+VALIDATE_WITHOUT_LEROBOT = (
+    WITHOUT_LEROBOT
+    + """
 from openral_cli.main import main
 
 sys.argv = ["openral", "validate", sys.argv[1]]
 main()
 """
+)
 
 TELEOP = """\
 name: leader

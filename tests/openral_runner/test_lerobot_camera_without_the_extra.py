@@ -6,18 +6,13 @@ import json
 import subprocess
 import sys
 
-WITHOUT_LEROBOT = """
-import importlib.abc, json, sys
+from tests.conftest import WITHOUT_LEROBOT
 
+BUILD_WITHOUT_LEROBOT = (
+    WITHOUT_LEROBOT
+    + """
+import json
 
-class Blocker(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in {"lerobot", "draccus", "torch"}:
-            raise ModuleNotFoundError(f"No module named {name!r} (blocked)", name=name)
-        return None
-
-
-sys.meta_path.insert(0, Blocker())
 from openral_core import ROSDependencyMissing, SensorReaderConfig
 from openral_runner.factory import SENSOR_BACKEND_REGISTRY
 
@@ -30,11 +25,12 @@ try:
 except ROSDependencyMissing as exc:
     print(json.dumps([exc.module, exc.extra, str(exc), "lerobot" in sys.modules]))
 """
+)
 
 
 def test_building_a_lerobot_camera_without_lerobot_names_the_extra() -> None:
     proc = subprocess.run(
-        [sys.executable, "-c", WITHOUT_LEROBOT], capture_output=True, text=True, timeout=60, check=True
+        [sys.executable, "-c", BUILD_WITHOUT_LEROBOT], capture_output=True, text=True, timeout=60, check=True
     )
     module, extra, message, imported = json.loads(proc.stdout.strip().splitlines()[-1])
     assert (module, extra) == ("lerobot", "lerobot")
