@@ -43,6 +43,7 @@ from openral_core.world import WorldState
 from openral_hal.lerobot.calibration import require_calibration, write_calibration_where_it_differs
 from openral_hal.lerobot.device_config import build_device_config, known_types, make_device, require_lerobot
 from openral_hal.lerobot.motors import POSITION_SUFFIX, motor_buses, position_norms
+from openral_hal.lerobot.ports import PortLocks
 from openral_hal.lerobot.units import UnitConversion
 from openral_rskill.base import RSkillBase
 from openral_rskill.ee_deltas import AXES, EndEffectorDeltas
@@ -121,8 +122,7 @@ class LeRobotTeleopSkill(RSkillBase):
         robot: The follower.
         teleoperator: LeRobot's teleoperator, built and not connected; its calibration files exist.
         type_name: Its LeRobot type, for messages.
-        keys: The teleoperator's action key of each follower joint, in the manifest's order.
-        conversion: From those keys' LeRobot conventions to the manifest's radians.
+        mapping: What its readings mean as the follower's joint targets.
     """
 
     INFO = RSkillInfo(
@@ -142,6 +142,7 @@ class LeRobotTeleopSkill(RSkillBase):
         self.type_name = type_name
         self.mapping = mapping
         self._names = robot.joint_names
+        self._ports = PortLocks()
 
     @classmethod
     def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> Self:
@@ -174,10 +175,15 @@ class LeRobotTeleopSkill(RSkillBase):
         """Identity of the ``lerobot_teleop`` skill."""
         return self.INFO
 
+    def _on_reset(self) -> None:
+        self.mapping.reset()
+
     def _on_activate(self) -> None:
         self.mapping.reset()
         try:
+            self._ports.acquire(found.port for found in motor_buses(self.teleoperator))
             self.teleoperator.connect(calibrate=False)
+            self._ports.refuse_other_opens()
             written = write_calibration_where_it_differs(self.teleoperator)
             if written:
                 _LOG.info("lerobot_calibration_written", teleoperator=self.type_name, arms=written)
@@ -192,13 +198,16 @@ class LeRobotTeleopSkill(RSkillBase):
         self._release()
 
     def _release(self) -> None:
-        """Disconnect the teleoperator, and any of its buses a failed connection left open."""
-        if self.teleoperator.is_connected:
-            self.teleoperator.disconnect()
-        for found in motor_buses(self.teleoperator):
-            if found.bus.is_connected:
-                with contextlib.suppress(Exception):  # best effort after a failure already raised
-                    found.bus.disconnect(disable_torque=False)
+        """Disconnect the teleoperator, and any of its buses a failed connection left open; free its ports."""
+        try:
+            if self.teleoperator.is_connected:
+                self.teleoperator.disconnect()
+        finally:
+            for found in motor_buses(self.teleoperator):
+                if found.bus.is_connected:
+                    with contextlib.suppress(Exception):  # best effort after a failure already raised
+                        found.bus.disconnect(disable_torque=False)
+            self._ports.release()
 
     def _step_impl(self, world_state: WorldState) -> Action:
         stamp = time.monotonic_ns()

@@ -279,12 +279,16 @@ class SkillRunnerBase(InferenceRunnerBase):
         return self._step_phase(takeover.skill, world, tick_idx)
 
     def _on_switch(self, takeover: Takeover, tick_idx: int) -> None:
-        """Control passed this tick; back to the policy, it starts afresh from the measured state."""
+        """Control passed this tick; whoever takes it starts afresh from the measured state."""
         to = takeover.skill_id if takeover.human_in_control else self.skill.info.skill_id
         self._telemetry.span.add_event(semconv.EVENT_TAKEOVER, {semconv.ATTR_TAKEOVER_ACTIVE_SKILL: to})
         metrics.add(semconv.METRIC_TAKEOVER_SWITCHES, 1, {**self._metric_attrs, semconv.ATTR_TAKEOVER_ACTIVE_SKILL: to})
         _log.info("control passed", to=to, tick=tick_idx, human=takeover.human_in_control)
-        if not takeover.human_in_control:
+        if takeover.human_in_control:
+            # A new turn: a device that integrates motion (a gamepad's deltas) starts from where the
+            # robot is now, not from where the person's last turn ended.
+            takeover.skill.reset()
+        else:
             # A new epoch: no row computed before or during the person's turn is replayed, and the
             # policy's own queues start from what it observes now.
             self._reset_skill()

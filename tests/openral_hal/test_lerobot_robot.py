@@ -442,3 +442,13 @@ def test_a_robot_from_an_installed_lerobot_robot_package_is_driven(
     finally:
         hal.disconnect()
     assert not any(bus.torque().values())
+
+
+def test_an_arm_configured_to_hold_keeps_torque_on_when_the_run_stops(tmp_path: Path, bus: ServoBusEmulator) -> None:
+    write_calibration(tmp_path, "arm")
+    params = {"type": "so101_follower", "port": bus.port, "id": "arm", "calibration_dir": str(tmp_path)}
+    hal = LeRobotRobotHAL(SO101, {**params, "disable_torque_on_disconnect": False})
+    hal.connect()
+    hal.disconnect()
+    assert all(bus.torque().values()), "LeRobot's own disable_torque_on_disconnect: false is honoured"
+    assert not hal.is_connected

@@ -25,7 +25,7 @@ pytest.importorskip("scservo_sdk", reason=LEROBOT_REASON)
 from click.testing import CliRunner  # noqa: E402
 
 from openral_cli.main import cli  # noqa: E402
-from openral_core import RobotEnvironment, RobotManifest, ROSConfigError, TickResult  # noqa: E402
+from openral_core import RobotEnvironment, RobotManifest, ROSConfigError, ROSSkillError, TickResult  # noqa: E402
 from openral_core.world import JointState, WorldState  # noqa: E402
 from openral_hal.feetech import protocol as p  # noqa: E402
 from openral_hal.feetech.emulator import ServoBusEmulator  # noqa: E402
@@ -187,6 +187,24 @@ def test_deactivation_disconnects_and_the_skill_activates_again(
     finally:
         skill.shutdown()
     assert not skill.teleoperator.is_connected
+
+
+def test_a_second_skill_on_the_same_leader_is_refused_and_the_first_keeps_reading(
+    robot: RobotManifest, leader_bus: ServoBusEmulator, tmp_path: Path
+) -> None:
+    write_calibration(tmp_path, "leader")
+    first, second = _leader_skill(robot, leader_bus, tmp_path), _leader_skill(robot, leader_bus, tmp_path)
+    first.configure()
+    second.configure()
+    first.activate()
+    try:
+        with pytest.raises(ROSSkillError, match="in use"):
+            second.activate()
+        leader_bus.play([(0.0, POSE_A)])
+        assert _step(first) == pytest.approx(expected_radians(robot, POSE_A), abs=1e-9)
+    finally:
+        first.shutdown()
+        second.shutdown()
 
 
 def test_a_missing_calibration_file_names_the_file_and_the_command(robot: RobotManifest, tmp_path: Path) -> None:
@@ -360,6 +378,27 @@ def test_end_effector_deltas_move_the_gripper_along_the_asked_axis(robot: RobotM
         # The jaw opens one step per tick (a quarter of its velocity limit at 30 Hz).
         jaw = robot.joints[-1]
         assert rows[-1][-1] == pytest.approx(min(start[-1] + 10 * jaw.velocity_limit / 4 / 30, jaw.upper))
+
+
+def test_a_new_turn_of_end_effector_teleoperation_starts_from_the_measured_pose(
+    robot: RobotManifest, installed_package
+) -> None:
+    install_pad(installed_package, "turn_pad")
+    skill = _skill(robot, {"type": "turn_pad", "delta_z": 1.0, "ee_step_m": 0.002})
+    skill.configure()
+    skill.activate()
+    try:
+        first = WorldState(stamp_ns=0, joint_state=JointState(names=robot.joint_names, positions=[0.0] * 6, stamp_ns=0))
+        for _ in range(5):
+            skill.step(first)
+        # Meanwhile the policy moved the arm elsewhere; the person's next turn starts there (the runner resets it).
+        moved = [0.3, -0.5, 0.7, 0.2, 0.1, 0.4]
+        now = WorldState(stamp_ns=1, joint_state=JointState(names=robot.joint_names, positions=moved, stamp_ns=1))
+        skill.reset()
+        row = skill.step(now).targets[0]
+    finally:
+        skill.shutdown()
+    assert np.abs(np.subtract(row, moved)).max() < 0.1, "one step from where the robot is, not from the last turn"
 
 
 def test_a_leader_with_other_joints_than_the_follower_is_refused(robot: RobotManifest) -> None:

@@ -224,6 +224,7 @@ def test_a_chunk_policy_given_control_back_starts_a_new_epoch_and_replays_no_old
         runner.run(12)
         takeover.request(True)
         runner.run(10)
+        assert person.calls.count("reset") == 1, "the person's turn starts afresh, as the policy's does"
         inferred_before_return = policy.inferences
         resets_before_return = policy.resets
         takeover.request(False)
@@ -236,6 +237,7 @@ def test_a_chunk_policy_given_control_back_starts_a_new_epoch_and_replays_no_old
     assert all(t.sent_action == [-1.0, -1.0] for t in person_ticks if t.action_applied)
     assert all(t.policy_action is not None and t.policy_action[0] >= 1 for t in person_ticks)  # it kept inferring
     assert policy.resets == resets_before_return + 1  # reset (a new epoch) the tick control came back
+    assert person.calls.count("reset") == 1  # only when control passed to the person
     back = [t for t in ticks[22:] if t.action_applied]
     assert back, "the policy never acted again"
     assert all(t.sent_action is not None and t.sent_action[0] > inferred_before_return for t in back)

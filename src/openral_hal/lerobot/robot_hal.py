@@ -22,7 +22,9 @@ normalisation with the calibration); openral runs the loop around it. What openr
   configuration error, a file the motors disagree with is written to them. Before torque comes
   on, every goal becomes the present position, so the arm holds where it is.
 * **One owner, limp on stop.** Every serial port is locked before the driver opens it, and every
-  stop path (``disconnect``, a failed connect) switches torque off on every bus.
+  stop path (``disconnect``, a failed connect, a forced stop while a read is stuck) switches torque
+  off on every bus, unless the arm's LeRobot config says ``disable_torque_on_disconnect: false``
+  (then it holds, as LeRobot's own disconnect would leave it).
 """
 
 from __future__ import annotations
@@ -157,7 +159,8 @@ class LeRobotRobotHAL:
         """
         if self._connected:
             for found in motor_buses(self.robot):
-                _broadcast_torque_off(found.bus)
+                if _torque_off_on_stop(found.owner):
+                    _broadcast_torque_off(found.bus)
         with self._lock:
             self._connected = False
             self._stop_robot()
@@ -230,7 +233,7 @@ class LeRobotRobotHAL:
     def _stop_robot(self) -> None:
         """Torque off on every bus, then LeRobot's disconnect; whatever fails, the ports are released."""
         for found in motor_buses(self.robot):
-            if found.bus.is_connected:
+            if found.bus.is_connected and _torque_off_on_stop(found.owner):
                 with suppress(Exception):
                     found.bus.disable_torque(num_retry=_TORQUE_OFF_RETRIES)
         with suppress(Exception):
@@ -331,10 +334,17 @@ def _hold_before_torque(bus: Any) -> None:
     bus._openral_holds = True
 
 
+def _torque_off_on_stop(arm: Any) -> bool:
+    """An arm goes limp when the run stops unless its LeRobot config says ``disable_torque_on_disconnect: false``."""
+    return bool(getattr(getattr(arm, "config", None), "disable_torque_on_disconnect", True))
+
+
 def _broadcast_torque_off(bus: Any) -> None:
     """One Feetech broadcast write of torque off straight onto the port: no reply, no lock, never raises."""
+    from lerobot.motors.feetech import FeetechMotorsBus  # noqa: PLC0415  (the extra, imported with the robot)
+
     serial_port = getattr(getattr(bus, "port_handler", None), "ser", None)
-    if serial_port is None or type(bus).__name__ != "FeetechMotorsBus":
+    if serial_port is None or not isinstance(bus, FeetechMotorsBus):
         return
     with suppress(Exception):
         serial_port.write(feetech.write_packet(feetech.BROADCAST_ID, Register.TORQUE_ENABLE, b"\x00"))

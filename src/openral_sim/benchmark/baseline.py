@@ -10,14 +10,13 @@ episode runs.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from openral_core import ROSConfigError
-from openral_sim.benchmark.compare import PAIRED_FIELDS, compare_reports
+from openral_sim.benchmark.compare import PAIRED_FIELDS, compare_reports, load_report
 from openral_sim.benchmark.rows import SuiteRow
 
 BASELINE_OPTION = "--baseline"
@@ -37,18 +36,17 @@ class Baseline:
 
 
 def load_baseline(path: Path) -> Baseline:
-    """An earlier ``benchmark run --out`` report.
+    """An earlier ``benchmark run --out`` report, checked whole now: nothing in it can fail after the run.
 
     Raises:
-        ROSConfigError: Not such a report (unreadable, not JSON, no results or provenance).
+        ROSConfigError: Not such a report (unreadable, not JSON, no results, per-episode seeds or provenance).
     """
+    document = load_report(path, field=BASELINE_OPTION)
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
         provenance = document["provenance"]
         one_process = provenance["workers"] == 1 and provenance["ray"] is None
-        list(document["results"])
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ROSConfigError(f"not a benchmark report: {exc}", field=BASELINE_OPTION) from exc
+    except (KeyError, TypeError) as exc:
+        raise ROSConfigError(f"{path} is not a benchmark report: no provenance ({exc})", field=BASELINE_OPTION) from exc
     return Baseline(document, bool(one_process))
 
 

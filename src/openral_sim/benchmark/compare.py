@@ -41,17 +41,19 @@ def load_report(path: Path, *, field: str) -> dict[str, Any]:
         rows = document["results"]
         for row in rows:
             if row.get("status") == "completed":
+                str(row["scene"])
                 for episode in row["episodes"]:
                     int(episode["seed"]), bool(episode["success"])
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+                    steps = episode.get("steps_to_success")
+                    if steps is not None and not isinstance(steps, int):
+                        raise TypeError(f"steps_to_success {steps!r} is not a whole number")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ROSConfigError(
             f"{path} is not a benchmark report with per-episode seeds and outcomes ({type(exc).__name__}: {exc})",
             field=field,
             hint="write one with: openral benchmark run --config SUITE --out FILE",
         ) from exc
-    if not isinstance(document, dict):
-        raise ROSConfigError(f"{path} is not a benchmark report", field=field)
-    return document
+    return dict(document)
 
 
 def compare_reports(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
@@ -93,8 +95,7 @@ def compare_rows(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
                 f"scene {scene!r}: A's row has {key} {a.get(key)!r} and B's {b.get(key)!r}; paired rows must agree",
                 field=f"B.results[{scene}].{key}",
             )
-    episodes_a = {int(e["seed"]): e for e in a["episodes"]}
-    episodes_b = {int(e["seed"]): e for e in b["episodes"]}
+    episodes_a, episodes_b = _by_seed(a, "A"), _by_seed(b, "B")
     if set(episodes_a) != set(episodes_b):
         unpaired = sorted(set(episodes_a) ^ set(episodes_b))
         raise ROSConfigError(
@@ -168,6 +169,17 @@ def comparison_lines(comparison: Mapping[str, Any]) -> list[str]:
 
 def _p(value: float) -> str:
     return f"{value:.2g}" if value < 0.01 else f"{value:.3f}"
+
+
+def _by_seed(row: Mapping[str, Any], side: str) -> dict[int, Mapping[str, Any]]:
+    """A row's episodes by seed; a seed run twice cannot be paired."""
+    episodes = {int(e["seed"]): e for e in row["episodes"]}
+    if len(episodes) != len(row["episodes"]):
+        raise ROSConfigError(
+            f"scene {row['scene']!r}: {side}'s row runs a seed more than once; episodes pair by seed",
+            field=f"{side}.results[{row['scene']}].episodes",
+        )
+    return episodes
 
 
 def _completed_by_scene(document: Mapping[str, Any], side: str) -> dict[str, Mapping[str, Any]]:

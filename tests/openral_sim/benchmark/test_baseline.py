@@ -27,7 +27,7 @@ def _report(tmp_path: Path, results: list[dict[str, Any]], **provenance: Any) ->
 
 
 def test_a_one_process_reports_rows_are_the_baseline(tmp_path: Path) -> None:
-    rows = [{"label": "a", "status": "completed"}]
+    rows = [{"label": "a", "scene": "reach", "status": "completed", "episodes": [{"seed": 0, "success": True}]}]
     baseline = load_baseline(_report(tmp_path, rows))
     assert baseline.rows == rows
     assert baseline.one_process
@@ -44,8 +44,13 @@ def test_a_report_of_several_processes_loads_as_no_speed_reference(
     ("text", "message"),
     [
         ("{not json", "not a benchmark report"),
-        ('{"results": []}', "not a benchmark report: 'provenance'"),
-        ('{"provenance": {"workers": 1, "ray": null}}', "not a benchmark report: 'results'"),
+        ('{"results": []}', "not a benchmark report: no provenance"),
+        ('{"provenance": {"workers": 1, "ray": null}}', "not a benchmark report with per-episode seeds"),
+        (
+            '{"provenance": {"workers": 1, "ray": null}, "results": [{"status": "completed", "scene": "x", '
+            '"episodes": [{"success": true}]}]}',
+            "not a benchmark report with per-episode seeds",  # refused now, not after the run
+        ),
     ],
 )
 def test_anything_but_a_report_is_refused_naming_the_option(tmp_path: Path, text: str, message: str) -> None:

@@ -87,9 +87,27 @@ def test_seeds_in_one_report_only_are_refused() -> None:
         compare_reports(a, b)
 
 
-def test_a_file_that_is_no_report_is_refused_in_one_line(tmp_path: Path) -> None:
+def test_a_seed_run_twice_in_a_row_is_refused() -> None:
+    a = report("a", [(True, 5)] * 3)
+    b = report("b", [(True, 5)] * 3)
+    b["results"][0]["episodes"][2]["seed"] = 1
+    a["results"][0]["episodes"][1]["seed"] = 2
+    with pytest.raises(ROSConfigError, match="runs a seed more than once"):
+        compare_reports(a, b)
+
+
+@pytest.mark.parametrize(
+    "row",
+    [
+        {"status": "completed", "scene": "x", "episodes": [{"success": True}]},  # an older report: no seeds
+        {"status": "completed", "episodes": [{"seed": 0, "success": True}]},  # no scene
+        {"status": "completed", "scene": "x", "episodes": [{"seed": 0, "success": True, "steps_to_success": "3"}]},
+        {"status": "completed", "scene": "x", "episodes": "none"},
+    ],
+)
+def test_a_file_that_is_no_report_is_refused_in_one_line(tmp_path: Path, row: dict[str, Any]) -> None:
     path = tmp_path / "old.json"
-    path.write_text(json.dumps({"results": [{"status": "completed", "scene": "x", "episodes": [{"success": True}]}]}))
+    path.write_text(json.dumps({"results": [row]}))
     with pytest.raises(ROSConfigError, match=r"^A: .*not a benchmark report with per-episode seeds"):
         load_report(path, field="A")
 
