@@ -42,8 +42,14 @@ from openral_sim.env import EnvSpec
 DEADBAND_OF_RANGE: Final = 1e-4
 """A velocity below this share of a dimension's action range per step has no direction."""
 
-METRICS: Final = ("jerk_rms", "seam_jump_max", "seam_jump_p95", "reversals_per_s", "ee_path_length_m")
-"""The per-episode metrics a row summarises and a comparison pairs, in the order reports show them."""
+METRICS: Final = {
+    "jerk_rms": ("jerk RMS", "action units/s³"),
+    "seam_jump_max": ("largest seam jump", "action units"),
+    "seam_jump_p95": ("seam jump p95", "action units"),
+    "reversals_per_s": ("reversals", "1/s"),
+    "ee_path_length_m": ("end-effector path", "m"),
+}
+"""The per-episode metrics a row summarises and a comparison pairs (name: how a person reads it, its unit)."""
 
 
 @dataclass(frozen=True)
