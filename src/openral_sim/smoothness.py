@@ -99,7 +99,8 @@ class CommandLog:
 
     def metrics(self, geometry: ActionGeometry) -> EpisodeSmoothness:
         """The episode's metrics (module docstring)."""
-        commands = np.asarray(self.commands, dtype=np.float64).reshape(len(self.commands), -1)
+        dims = len(geometry.deadband)
+        commands = np.asarray(self.commands, dtype=np.float64).reshape(len(self.commands), dims)
         positions = np.asarray(self.positions, dtype=np.float64) if len(self.positions) > 1 else None
         return smoothness(commands, np.asarray(self.seams, dtype=bool), geometry, positions)
 
