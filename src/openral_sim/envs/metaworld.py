@@ -161,8 +161,8 @@ class MetaWorldEnv:
         return self._views.render(camera, width, height)
 
     def end_effector_positions(self) -> np.ndarray:
-        """The gripper's tool centre (between its fingers, the state's hand position) in the world, metres."""
-        return np.array(self._env.tcp_center, dtype=np.float64)
+        """The hand's position in the world (the state's first three values), metres."""
+        return np.array(self._env.get_endeff_pos(), dtype=np.float64)
 
     def close(self) -> None:
         self._views.close()
