@@ -46,7 +46,7 @@ METRICS: Final = {
     "jerk_rms": ("jerk RMS", "action units/s³"),
     "seam_jump_max": ("largest seam jump", "action units"),
     "seam_jump_p95": ("seam jump p95", "action units"),
-    "reversals_per_s": ("reversals", "1/s"),
+    "reversals_per_s": ("reversals", "per s"),
     "ee_path_length_m": ("end-effector path", "m"),
 }
 """The per-episode metrics a row summarises and a comparison pairs (name: how a person reads it, its unit)."""
