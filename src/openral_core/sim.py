@@ -130,6 +130,24 @@ class EpisodeTiming(BaseModel):
     budget_violations: int = 0
 
 
+class EpisodeSmoothness(BaseModel):
+    """How smoothly the commands that reached the robot moved in one episode (defined in ``openral_sim.smoothness``).
+
+    Computed from the command sent to the env each step, after the safety envelope, held steps
+    included. ``None``: the episode was too short for the metric, or the env has no end effector.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", ser_json_inf_nan="constants")
+
+    commands: int = Field(ge=0, description="Commands sent (one per step).")
+    jerk_rms: float | None = Field(default=None, description="RMS third derivative of the commanded motion.")
+    seams: int = Field(default=0, ge=0, description="Steps whose row came from another chunk than the step before.")
+    seam_jump_max: float | None = Field(default=None, description="Largest change of the command at a seam.")
+    seam_jump_p95: float | None = Field(default=None, description="95th percentile of the changes at seams.")
+    reversals_per_s: float | None = Field(default=None, description="Direction reversals per simulated second.")
+    ee_path_length_m: float | None = Field(default=None, description="Path length of the end effector(s), metres.")
+
+
 class EpisodeResult(BaseModel):
     """One simulated episode's outcome, derived from its ticks.
 
@@ -152,6 +170,17 @@ class EpisodeResult(BaseModel):
     skill (``skill_done``), the fault limit (``faults``: the skill kept failing), or a stop of the run
     (``stopped``: a signal, an e-stop)."""
     timing: EpisodeTiming = Field(default_factory=EpisodeTiming)
+    control_hz: float | None = Field(default=None, gt=0)
+    """Env steps per simulated second: a step count over it is simulated time (``None`` in older reports)."""
+    smoothness: EpisodeSmoothness | None = None
+    """Smoothness of the commands sent (``None`` in older reports)."""
+
+    @property
+    def seconds_to_success(self) -> float | None:
+        """Simulated seconds to the first successful step (``None``: no success, or no known rate)."""
+        if self.steps_to_success is None or self.control_hz is None:
+            return None
+        return self.steps_to_success / self.control_hz
 
     def outcome(self) -> dict[str, Any]:
         """Every field but the timing: what must be identical for identical seeds."""

@@ -84,6 +84,8 @@ class Decision:
 
     outcome: Outcome
     action: Action | None = None
+    chunk: int | None = None
+    """The id of the request whose chunk the action's row came from (a held row keeps its chunk's)."""
 
 
 @dataclass
@@ -190,6 +192,9 @@ class ChunkedExecutor:
         self._epoch = 0
         self._next_id = 0
         self._held: np.ndarray | None = None
+        self._buffered_chunk: int | None = None
+        """The request whose chunk the buffer's rows are from: placing one replaces every row from its tick on."""
+        self._held_chunk: int | None = None
         self._starved_in_row = 0
         self._in_flight: _Request | None = None
         self._latencies: collections.deque[int] = collections.deque(maxlen=_LATENCY_WINDOW)
@@ -259,7 +264,8 @@ class ChunkedExecutor:
         if row is not None:
             self._starved_in_row = 0
             self._held = row
-            return Decision(Outcome.ACTION, self._action(self.anchor.to_command(row, world), world))
+            self._held_chunk = chunk = self._buffered_chunk
+            return Decision(Outcome.ACTION, self._action(self.anchor.to_command(row, world), world), chunk)
         if self._held is None:
             return Decision(Outcome.NONE)
         self._starved_in_row += 1
@@ -268,7 +274,7 @@ class ChunkedExecutor:
         fallback = self.config.fallback
         if self._starved_in_row > self.config.max_starved_ticks and fallback is not StarvationFallback.HOLD:
             return Decision(Outcome.FALLBACK if fallback is StarvationFallback.SKILL else Outcome.STOP)
-        return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
+        return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world), self._held_chunk)
 
     def _unavailable(self, world: WorldState) -> Decision:
         """The source is down: its rows are dropped and the fallback decides now."""
@@ -284,7 +290,7 @@ class ChunkedExecutor:
             return Decision(Outcome.STOP)
         if self._held is None:
             return Decision(Outcome.NONE)
-        return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world))
+        return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world), self._held_chunk)
 
     @property
     def fallback_active(self) -> bool:
@@ -421,6 +427,7 @@ class ChunkedExecutor:
             outcome[semconv.ATTR_EXECUTOR_DISCARDED] = "too_few_rows"
         else:
             self.stats.chunks_used += 1
+            self._buffered_chunk = request.request_id
         self._chunk_span(request, tick_idx, outcome)
 
     def _chunk_span(self, request: _Request, tick_idx: int, outcome: dict[str, Any]) -> None:

@@ -336,6 +336,7 @@ class SkillRunnerBase(InferenceRunnerBase):
             span.end()
         outcome = decision.outcome
         if outcome is Outcome.ACTION or outcome is Outcome.HOLD:
+            self._tick.chunk_id = decision.chunk
             return decision.action, None
         if outcome is Outcome.NONE:
             return None, WithheldReason.AWAITING_CHUNK

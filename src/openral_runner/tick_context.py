@@ -56,6 +56,8 @@ class TickContext:
     active_skill: str | None = None
     policy_action: list[float] | None = None
     handover_ramp: bool | None = None
+    chunk_id: int | None = None
+    """The chunk the action's row came from (the executor's request id); ``None``: an action of its own."""
 
     def withhold(self, reason: WithheldReason) -> None:
         """Record why the action did not reach the robot (the first reason given stands)."""

@@ -134,6 +134,18 @@ class SimEnv(Protocol):
         ...
 
 
+@runtime_checkable
+class EndEffectorSensing(Protocol):
+    """An env that knows where its end effector is: the optional capability the path-length metric reads.
+
+    Decided once per runner (``isinstance``), never per step.
+    """
+
+    def end_effector_positions(self) -> np.ndarray:
+        """Where the end effector(s) are after the last reset or step: ``(3,)`` or ``(effectors, 3)``, metres."""
+        ...
+
+
 class SimEnvPlugin(Protocol):
     """What the ``openral.sim_envs`` group holds: an adapter class with a ``from_scene`` classmethod."""
 

@@ -29,6 +29,7 @@ import numpy as np
 import structlog
 
 from openral_core import EpisodeResult, ObserverConfig, ROSDependencyMissing, SimEnvironment
+from openral_sim import smoothness
 from openral_sim.build import EpisodeBatch, SimCache, SkillFailed
 from openral_sim.time_to_success import time_to_success
 
@@ -364,7 +365,10 @@ def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = No
     """LeRobot's aggregates (``pc_success``, ``avg_sum_reward``, ``avg_max_reward``) and the Wilson 95 % interval.
 
     ``steps_to_success`` summarises the successful episodes only (LeRobot's view); ``time_to_success``
-    counts every episode, failures censored at the limit (:mod:`openral_sim.time_to_success`).
+    counts every episode, failures censored at the limit (:mod:`openral_sim.time_to_success`), in
+    steps and, where the episodes know their env's rate, in simulated seconds. ``smoothness`` is
+    each metric's mean and p95 over the episodes (:mod:`openral_sim.smoothness`; ``None`` for
+    episodes that did not record it).
 
     With the ``batch``, also the tick and inference times' percentiles and histograms
     (:func:`latency_histogram`), which is all a report keeps of the per-step samples.
@@ -384,12 +388,19 @@ def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = No
             "mean": float(np.mean(to_success)) if to_success else None,
             "p50": float(np.median(to_success)) if to_success else None,
         },
-        "time_to_success": time_to_success([e.steps_to_success for e in episodes]),
+        "time_to_success": time_to_success([e.steps_to_success for e in episodes], _control_hz(episodes)),
+        "smoothness": smoothness.summarize(episodes),
     }
     if batch is not None:
         summary["tick_ms"] = _percentiles(batch.tick_ms)
         summary["inference_ms"] = _percentiles(batch.inference_ms)
     return summary
+
+
+def _control_hz(episodes: Sequence[EpisodeResult]) -> float | None:
+    """The rate the row's episodes share (``None``: not recorded, or not one rate)."""
+    rates = {e.control_hz for e in episodes}
+    return rates.pop() if len(rates) == 1 else None
 
 
 LATENCY_BINS = 40

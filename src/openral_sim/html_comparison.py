@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from openral_sim import report_files
+from openral_sim.smoothness import METRICS
 
 Comparison = Mapping[str, Any]
 
@@ -71,9 +72,46 @@ def comparison_section(comparison: Comparison) -> str:
             "McNemar: exact, on the seeds only one of them solved; steps: paired bootstrap on the seeds both solved. "
             "Time to success counts every episode (failures censored at the limit; — : beyond it).</p>",
             f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>",
+            "<h3>Smoothness, A and B on the same seeds</h3>",
+            "<p>Per metric (README: definitions and units): the means of A and B over the seeds where both have "
+            "it, B − A with its paired bootstrap 95 % interval, how many seeds B was lower / higher, and the exact "
+            "sign test.</p>",
+            _smoothness_table(comparison),
             "</section>",
         ]
     )
+
+
+def _smoothness_table(comparison: Comparison) -> str:
+    head = "".join(
+        f"<th>{h}</th>"
+        for h in ("scene", "metric", "A", "B", "B − A (95 % CI, paired)", "B lower / higher / pairs", "sign test p")
+    )
+    rows = []
+    for row in comparison.get("rows", []):
+        smoothness = row.get("smoothness")
+        if smoothness is None:
+            rows.append(f'<tr><td>{_e(row["scene"])}</td><td colspan="6">unavailable (not recorded)</td></tr>')
+            continue
+        for name, (label, unit) in METRICS.items():
+            paired = smoothness.get(name)
+            cells = [_e(row["scene"]), _e(f"{label} ({unit})")]
+            if paired is None:
+                cells += ["—"] * 5
+            else:
+                low, high = paired["mean_difference_ci95"]
+                cells += [
+                    _num(f"{paired['mean_a']:.3g}"),
+                    _num(f"{paired['mean_b']:.3g}"),
+                    _num(f"{paired['mean_difference']:+.3g} ({low:+.3g} to {high:+.3g})"),
+                    _num(f"{paired['b_lower']} / {paired['b_higher']} / {paired['n_pairs']}"),
+                    _num(f"{paired['sign_test_p']:.3g}"),
+                ]
+            rows.append(
+                "<tr>" + "".join(cell if cell.startswith("<td") else f"<td>{cell}</td>" for cell in cells) + "</tr>"
+            )
+    body = "".join(rows)
+    return f'<table class="smoothness"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
 
 
 def render(comparison: Comparison) -> str:
@@ -109,7 +147,8 @@ def _who(side: Mapping[str, Any]) -> str:
 def _p50(summary: Mapping[str, Any] | None) -> str:
     if not summary or summary.get("p50") is None:
         return "—"
-    return f"{summary['p50']:.0f}"
+    seconds = summary.get("p50_s")
+    return f"{summary['p50']:.0f}" + ("" if seconds is None else f" ({seconds:.2f} s)")
 
 
 def _num(text: str) -> str:

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from openral_sim import html_comparison, html_figures, report_files
+from openral_sim.smoothness import METRICS
 
 Document = Mapping[str, Any]
 
@@ -80,6 +81,12 @@ def render(document: Document) -> str:
         "<h2>Results</h2>",
         f'<div class="wide">{_results_table(results)}</div>',
         "</section>",
+        '<section id="smoothness">',
+        "<h2>Smoothness</h2>",
+        "<p>Of the commands sent to the robot each step (after the safety envelope, held steps included); "
+        "each metric's mean / p95 over the row's episodes. The README defines each metric and its unit.</p>",
+        f'<div class="wide">{_smoothness_table(completed)}</div>',
+        "</section>",
         *([html_comparison.comparison_section(document["comparison"])] if document.get("comparison") else []),
         *_figures(completed),
         '<section id="provenance">',
@@ -121,6 +128,7 @@ def _results_table(results: Sequence[Mapping[str, Any]]) -> str:
         "success",
         "95 % CI",
         "steps to success (p50)",
+        "time to success p50 (s, 95 % CI)",
         "tick ms (p50 / p99)",
         "inference ms (p50 / p99)",
         "episodes/s",
@@ -139,6 +147,7 @@ def _results_table(results: Sequence[Mapping[str, Any]]) -> str:
             ("pc-success", f"{_number(row['pc_success'], '.1f')} %" if done else "—", True),
             ("ci95", _interval(row["pc_success_ci95"]) if done else "—", True),
             ("steps-p50", _number((row.get("steps_to_success") or {}).get("p50"), ".0f"), True),
+            ("time-p50-s", _seconds(row.get("time_to_success")), True),
             ("tick-ms", _pair(row.get("tick_ms")), True),
             ("inference-ms", _pair(row.get("inference_ms")), True),
             ("episodes-per-s", _number(row.get("episodes_per_s"), ".2f"), True),
@@ -146,6 +155,34 @@ def _results_table(results: Sequence[Mapping[str, Any]]) -> str:
         ]
         tds = "".join(f'<td class="{name}{_NUMBER if numeric else ""}">{value}</td>' for name, value, numeric in cells)
         lines.append(f'<tr class="{"completed" if done else "failed"}">{tds}</tr>')
+    lines += ["</tbody>", "</table>"]
+    return "\n".join(lines)
+
+
+def _seconds(summary: Mapping[str, Any] | None) -> str:
+    """Time to success's p50 in simulated seconds with its interval (— : not recorded, or beyond the limit)."""
+    if not summary or "p50_s" not in summary:
+        return "—"
+    interval = summary.get("p50_s_ci95") or [None, None]
+    return f"{_number(summary['p50_s'], '.2f')} ({_number(interval[0], '.2f')} – {_number(interval[1], '.2f')})"
+
+
+def _smoothness_table(completed: Sequence[Mapping[str, Any]]) -> str:
+    """Per row, each smoothness metric's mean / p95 over its episodes; a row without them says so."""
+    head = ["row", *(f"{label} ({unit})" for label, unit in METRICS.values())]
+    lines = ['<table class="smoothness">', "<thead><tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr></thead>"]
+    lines.append("<tbody>")
+    for row in completed:
+        summary = row.get("smoothness")
+        cells = [f'<td class="label">{_e(row.get("label"))}</td>']
+        if not summary:
+            cells.append(f'<td class="unavailable" colspan="{len(METRICS)}">unavailable (not recorded)</td>')
+        else:
+            for name in METRICS:
+                stats = summary[name]
+                value = f"{_number(stats['mean'], '.3g')} / {_number(stats['p95'], '.3g')}"
+                cells.append(f'<td class="{name}{_NUMBER}">{value}</td>')
+        lines.append("<tr>" + "".join(cells) + "</tr>")
     lines += ["</tbody>", "</table>"]
     return "\n".join(lines)
 

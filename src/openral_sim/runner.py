@@ -45,8 +45,9 @@ from openral_runner.frame_slot import frame_from_array
 from openral_runner.safety import SafetyClient
 from openral_runner.skill_runner import SkillRunnerBase
 from openral_runner.tick_context import TickContext
-from openral_sim.env import SimEnv, SimObservation
+from openral_sim.env import EndEffectorSensing, SimEnv, SimObservation
 from openral_sim.safety import ActionBoxSafetyClient
+from openral_sim.smoothness import ActionGeometry, CommandLog
 
 _log = structlog.get_logger(__name__)
 
@@ -108,6 +109,9 @@ class SimRunner(SkillRunnerBase):
         self._frame_seq = 0
         self._opened = False
         self._failure: str | None = None
+        self._geometry = ActionGeometry.of(env.spec)
+        self._end_effector = env if isinstance(env, EndEffectorSensing) else None
+        """Decided once: whether the env reports its end effector (for the path length)."""
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -173,7 +177,9 @@ class SimRunner(SkillRunnerBase):
             self.executor.virtual_delay = self.scene.virtual_latency.sampler(seed)
         self._reset_skill(seed)
         tick.hal_ms = (now() - t0) * 1e3
-        self._episode = _EpisodeTally(index, seed)
+        self._episode = episode = _EpisodeTally(index, seed)
+        if self._end_effector is not None:
+            episode.log.position(self._end_effector.end_effector_positions())
         tick.episode_idx = index
         self._tell_episode_start(index, self.scene.task)
 
@@ -222,7 +228,10 @@ class SimRunner(SkillRunnerBase):
             episode.last_sent = command
         else:
             command = self._spec.hold_action(episode.last_sent)
+        episode.log.command(command, tick.chunk_id, held=action is None)
         step = self.env.step(command)
+        if self._end_effector is not None:
+            episode.log.position(self._end_effector.end_effector_positions())
         observation = step.observation
         self._observation = observation
         tick.reward = step.reward
@@ -311,6 +320,8 @@ class SimRunner(SkillRunnerBase):
             sum_reward=episode.sum_reward,
             max_reward=episode.max_reward if episode.steps else 0.0,
             ended_by=ended_by,
+            control_hz=self._spec.control_hz,
+            smoothness=episode.log.metrics(self._geometry),
             timing=EpisodeTiming(
                 step_ms_mean=episode.step_ms_total / steps,
                 step_ms_max=episode.step_ms_max,
@@ -350,6 +361,7 @@ class _EpisodeTally:
         "inference_ms",
         "info_keys",
         "last_sent",
+        "log",
         "max_reward",
         "pending_end",
         "saw_success_key",
@@ -378,6 +390,8 @@ class _EpisodeTally:
         self.info_keys: list[str] = []
         self.skill_done = False
         self.pending_end: str | None = None
+        self.log = CommandLog()
+        """The commands sent, for the episode's smoothness."""
 
 
 def _ended_by(*, success: bool, terminated: bool, truncated: bool, max_steps: bool, skill_done: bool) -> str | None:

@@ -8,6 +8,10 @@ Kaplan-Meier estimate and needs nothing more than counting. A quantile (p50, p90
 step by which that share of all episodes succeeded; where the share is never reached it is
 ``None`` (beyond the limit), never a number computed from the successes alone. Intervals are a
 seeded bootstrap over episodes, so a report reproduces.
+
+In seconds of simulated time: a step lasts ``1 / control_hz`` (the env's rate, the same for
+every episode of a row), so each quantile and interval end in seconds (``p50_s``, ``p50_s_ci95``)
+is its step divided by the rate; the curve stays in steps.
 """
 
 from __future__ import annotations
@@ -45,17 +49,29 @@ def quantile(steps_to_success: Sequence[int | None], q: float) -> float | None:
     return float(steps[max(needed, 1) - 1])
 
 
-def time_to_success(steps_to_success: Sequence[int | None]) -> dict[str, Any]:
-    """The curve, and each quantile with its bootstrap 95 % interval (an end ``None``: beyond the limit)."""
+def time_to_success(steps_to_success: Sequence[int | None], control_hz: float | None = None) -> dict[str, Any]:
+    """The curve, and each quantile with its bootstrap 95 % interval (an end ``None``: beyond the limit).
+
+    With the env's ``control_hz``, also each quantile and its interval in simulated seconds.
+    """
     summary: dict[str, Any] = {"n_episodes": len(steps_to_success), "solved_by": solved_by(steps_to_success)}
     values = np.array([np.nan if s is None else s for s in steps_to_success], dtype=float)
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     draws = values[rng.integers(0, len(values), size=(BOOTSTRAP_RESAMPLES, len(values)))] if len(values) else None
     for q in QUANTILES:
         key = f"p{round(q * 100)}"
-        summary[key] = quantile(steps_to_success, q)
-        summary[f"{key}_ci95"] = _interval(draws, q)
+        summary[key] = step = quantile(steps_to_success, q)
+        summary[f"{key}_ci95"] = interval = _interval(draws, q)
+        if control_hz is not None:
+            summary[f"{key}_s"] = _seconds(step, control_hz)
+            summary[f"{key}_s_ci95"] = None if interval is None else [_seconds(end, control_hz) for end in interval]
+    if control_hz is not None:
+        summary["control_hz"] = control_hz
     return summary
+
+
+def _seconds(step: float | None, control_hz: float) -> float | None:
+    return None if step is None else step / control_hz
 
 
 def _interval(draws: np.ndarray | None, q: float) -> list[float | None] | None:

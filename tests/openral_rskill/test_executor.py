@@ -218,6 +218,17 @@ def test_seams_between_the_old_chunk_and_the_new(seam: SeamMode, expected: list[
     assert firsts == pytest.approx(expected)
 
 
+def test_each_decision_names_the_chunk_its_row_came_from_and_a_held_row_keeps_it() -> None:
+    policy = GatedPolicy(rows=3, gated=False)
+    # Chunks of 3 rows, the next asked for with one row left (the p95 before any measurement): chunk 1
+    # replaces chunk 0 at tick 2; chunk 2 never arrives, so chunk 1's last row is held from tick 5 on.
+    ex = executor(policy, ExecutorConfig(margin_ticks=0), virtual_delay=lambda request: 0 if request < 2 else 99)
+    decisions = [ex.step(t, world(t)) for t in range(8)]
+    assert [d.outcome for d in decisions] == [Outcome.ACTION] * 5 + [Outcome.HOLD] * 3
+    assert [d.chunk for d in decisions] == [0, 0, 1, 1, 1, 1, 1, 1]
+    assert [d.action.first[0] for d in decisions if d.action is not None] == [0, 1, 200, 201, 202, 202, 202, 202]
+
+
 def test_ensemble_weights_older_predictions_first() -> None:
     policy = GatedPolicy(rows=4, gated=False)
     ex = executor(

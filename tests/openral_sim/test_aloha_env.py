@@ -16,7 +16,7 @@ from openral_core import ROSConfigError, SimCamera, SimEnvironment
 from openral_core.config import load_model_yaml
 from openral_hal import load_robot_manifest
 from openral_sim.build import run_episodes
-from openral_sim.env import SimEnv
+from openral_sim.env import EndEffectorSensing, SimEnv
 from openral_sim.envs.aloha import AlohaEnv
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -180,3 +180,19 @@ def test_an_unknown_task_exits_2_with_one_line_naming_the_field(tmp_path: Path) 
     assert len(lines) == 1, result.output
     assert "env_id" in lines[0]
     assert "AlohaInsertion-v0" in lines[0]
+
+
+def test_the_end_effectors_are_both_grippers_and_move_with_their_own_arm(env: AlohaEnv) -> None:
+    assert isinstance(env, EndEffectorSensing)
+    env.reset(0)
+    env.step(REST)
+    before = env.end_effector_positions()
+    assert before.shape == (2, 3)
+    assert before[0, 0] < 0 < before[1, 0]  # the left arm stands at negative x, the right at positive
+    turned = REST.copy()
+    turned[0] += 0.3  # the left arm's waist only
+    for _ in range(10):
+        env.step(turned)
+    after = env.end_effector_positions()
+    assert np.linalg.norm(after[0] - before[0]) > 0.02
+    assert np.linalg.norm(after[1] - before[1]) < 0.005  # the right one only settles

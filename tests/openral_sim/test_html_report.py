@@ -34,6 +34,7 @@ class Page(HTMLParser):
         self.results: list[dict[str, str]] = []
         self.provenance: dict[str, str] = {}
         self.rows: list[list[str]] = []
+        self.smoothness: list[dict[str, str]] = []
         self._figure: str | None = None
         self._table: str | None = None
         self._cell: tuple[str, str] | None = None
@@ -58,6 +59,10 @@ class Page(HTMLParser):
             self.results.append({})
         elif tag == "tr" and self._table == "rows":
             self.rows.append([])
+        elif tag == "tbody" and self._table == "smoothness":
+            self.smoothness = []
+        elif tag == "tr" and self._table == "smoothness":
+            self.smoothness.append({})
         elif tag in {"td", "th"} and self._table is not None:
             self._cell = (tag, (values.get("class") or "").split(" ")[0])
             self._text = []
@@ -74,6 +79,8 @@ class Page(HTMLParser):
                 self.results[-1][name] = text
             elif self._table == "rows" and kind == "td":
                 self.rows[-1].append(text)
+            elif self._table == "smoothness" and kind == "td":
+                self.smoothness[-1][name] = text
             elif self._table == "provenance":
                 if kind == "th":
                     self._key = text
@@ -140,6 +147,16 @@ def test_the_page_plots_every_row_prints_the_json_numbers_and_its_provenance(tmp
         assert cells["successes"] == str(row["n_success"])
         assert cells["seeds"] == f"{row['seeds'][0]}–{row['seeds'][1]}"
     assert page.results[0]["pc-success"] == "100.0 %"
+    # Time to success in simulated seconds, and each row's smoothness, as the JSON says.
+    seconds = rows[0]["time_to_success"]
+    low_s, high_s = seconds["p50_s_ci95"]
+    assert page.results[0]["time-p50-s"] == f"{seconds['p50_s']:.2f} ({low_s:.2f} – {high_s:.2f})"
+    assert page.results[1]["time-p50-s"] == "— (— – —)"  # the zero policy never succeeds
+    for cells, row in zip(page.smoothness, rows, strict=True):
+        jerk = row["smoothness"]["jerk_rms"]
+        assert cells["label"] == row["label"]
+        assert cells["jerk_rms"] == f"{jerk['mean']:.3g} / {jerk['p95']:.3g}"
+        assert cells["ee_path_length_m"] == "— / —"  # the mock env reports no end effector
 
     # Every provenance value, and what each row ran with its seeds.
     provenance = _leaves(document["provenance"])

@@ -17,7 +17,7 @@ pytest.importorskip("libero.libero", reason="needs the 'libero' extra")
 
 from openral_cli.main import cli
 from openral_dataset.check import check_dataset
-from openral_sim.env import SimEnv
+from openral_sim.env import EndEffectorSensing, SimEnv
 from openral_sim.envs.libero import MUJOCO_VERSION, LiberoEnv
 from openral_sim.skills.libero_expert import LiberoExpert, Phase
 
@@ -326,3 +326,14 @@ def test_sim_run_records_a_dataset_of_the_custom_scene(tmp_path: Path, monkeypat
     assert info["features"]["observation.state"]["names"][0] == "eef_x"
     assert info["features"]["observation.environment_state"]["names"][0] == "milk_1_x"
     assert info["features"]["observation.images.agentview"]["shape"][:2] == [32, 32]
+
+
+def test_the_end_effector_is_the_grip_site_the_state_reports(pnp: LiberoEnv) -> None:
+    assert isinstance(pnp, EndEffectorSensing)
+    states = [pnp.reset(0).state[:3]]
+    ends = [pnp.end_effector_positions()]
+    for _ in range(5):
+        states.append(pnp.step(np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0])).observation.state[:3])
+        ends.append(pnp.end_effector_positions())
+    np.testing.assert_allclose(ends, states, atol=1e-6)
+    assert ends[-1][2] - ends[0][2] > 0.005  # it rose

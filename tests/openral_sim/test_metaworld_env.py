@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from openral_core import PrivilegedState, ROSConfigError, SimCamera, SimEnvironment, WorldState
-from openral_sim.env import SimEnv, SimObservation
+from openral_sim.env import EndEffectorSensing, SimEnv, SimObservation
 from openral_sim.envs.metaworld import MetaWorldEnv
 from openral_sim.skills.metaworld_expert import MetaWorldExpert
 
@@ -188,3 +188,14 @@ def test_camera_renders_the_scene() -> None:
         assert env.render("topview", 32, 32).shape == (32, 32, 3)
     finally:
         env.close()
+
+
+def test_the_end_effector_is_the_hand_position_the_state_reports(env: MetaWorldEnv) -> None:
+    assert isinstance(env, EndEffectorSensing)
+    positions = [env.reset(3).state[:3]]
+    ends = [env.end_effector_positions()]
+    for _ in range(5):
+        positions.append(env.step(np.array([1.0, 0.0, 0.0, 0.0])).observation.state[:3])
+        ends.append(env.end_effector_positions())
+    np.testing.assert_allclose(ends, positions, atol=1e-6)
+    assert ends[-1][0] - ends[0][0] > 0.01  # the hand moved along x

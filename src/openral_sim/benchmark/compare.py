@@ -7,7 +7,10 @@ never silently dropped: an unpaired comparison is not the comparison asked for. 
 * success of A and B, B − A in percentage points with Newcombe's paired 95 % interval, the
   discordant pairs and the exact McNemar p (:mod:`openral_sim.benchmark.paired`);
 * steps to success on the seeds both solved: the mean of B − A, a paired bootstrap 95 % interval
-  (seeded, so a comparison prints the same numbers every time) and the exact sign test.
+  (seeded, so a comparison prints the same numbers every time) and the exact sign test;
+* each smoothness metric (:mod:`openral_sim.smoothness`) the same way, on the seeds where both
+  episodes have it (``None``: a report written before episodes recorded smoothness, or no seed
+  with a value in both).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 
 from openral_core import ROSConfigError
 from openral_sim.benchmark.paired import PairedTable, mcnemar_exact_p, newcombe_paired_interval
+from openral_sim.smoothness import METRICS
 
 SUCCESS_INTERVAL: Final = "newcombe_paired_method_10"
 STEPS_INTERVAL: Final = "paired_bootstrap_percentile"
@@ -47,6 +51,7 @@ def load_report(path: Path, *, field: str) -> dict[str, Any]:
                     steps = episode.get("steps_to_success")
                     if steps is not None and not isinstance(steps, int):
                         raise TypeError(f"steps_to_success {steps!r} is not a whole number")
+                    _check_smoothness(episode.get("smoothness"))
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ROSConfigError(
             f"{path} is not a benchmark report with per-episode seeds and outcomes ({type(exc).__name__}: {exc})",
@@ -54,6 +59,22 @@ def load_report(path: Path, *, field: str) -> dict[str, Any]:
             hint="write one with: openral benchmark run --config SUITE --out FILE",
         ) from exc
     return dict(document)
+
+
+def _check_smoothness(smoothness: Any) -> None:
+    """An episode's smoothness, when it has one, is numbers (or ``None``) by metric.
+
+    Raises:
+        TypeError: It is not.
+    """
+    if smoothness is None:
+        return
+    if not isinstance(smoothness, Mapping):
+        raise TypeError(f"smoothness {smoothness!r} is not an object")
+    for name in METRICS:
+        value = smoothness.get(name)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int | float)):
+            raise TypeError(f"smoothness.{name} {value!r} is not a number")
 
 
 def compare_reports(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
@@ -124,25 +145,65 @@ def compare_rows(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
             [episodes_a[s].get("steps_to_success") for s in seeds],
             [episodes_b[s].get("steps_to_success") for s in seeds],
         ),
+        "smoothness": paired_smoothness([episodes_a[s] for s in seeds], [episodes_b[s] for s in seeds]),
     }
 
 
 def paired_steps(a: Sequence[int | None], b: Sequence[int | None]) -> dict[str, Any]:
     """Steps to success on the seeds both solved: B − A's mean, its paired bootstrap interval, the sign test."""
-    differences = np.array([y - x for x, y in zip(a, b, strict=True) if x is not None and y is not None], dtype=float)
-    n = len(differences)
-    if n == 0:
+    differences = paired_differences(a, b)
+    if differences is None:
         return {"n_both_succeeded": 0, "mean_difference": None, "mean_difference_ci95": None, "sign_test_p": None}
+    return {
+        "n_both_succeeded": differences["n_pairs"],
+        "mean_difference": differences["mean_difference"],
+        "mean_difference_ci95": differences["mean_difference_ci95"],
+        "b_faster": differences["b_lower"],
+        "b_slower": differences["b_higher"],
+        "sign_test_p": differences["sign_test_p"],
+    }
+
+
+def paired_smoothness(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """Each smoothness metric of the paired episodes ``a`` and ``b`` (:func:`paired_differences`).
+
+    ``None`` when either side's episodes did not record smoothness (a report of an earlier version).
+    """
+    smooth_a, smooth_b = [e.get("smoothness") for e in a], [e.get("smoothness") for e in b]
+    if not any(smooth_a) or not any(smooth_b):
+        return None
+    return {
+        name: paired_differences(
+            [None if s is None else s.get(name) for s in smooth_a],
+            [None if s is None else s.get(name) for s in smooth_b],
+        )
+        for name in METRICS
+    }
+
+
+def paired_differences(a: Sequence[float | None], b: Sequence[float | None]) -> dict[str, Any] | None:
+    """B − A on the pairs where both have a value: means, the mean difference, its paired bootstrap interval, sign test.
+
+    The bootstrap resamples the pairs (seeded, :data:`BOOTSTRAP_RESAMPLES`); the exact sign test
+    counts the pairs where B is lower and higher (ties carry no sign). ``None`` without a pair.
+    """
+    pairs = np.array([(x, y) for x, y in zip(a, b, strict=True) if x is not None and y is not None], dtype=float)
+    n = len(pairs)
+    if n == 0:
+        return None
+    differences = pairs[:, 1] - pairs[:, 0]
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     means = differences[rng.integers(0, n, size=(BOOTSTRAP_RESAMPLES, n))].mean(axis=1)
-    faster, slower = int((differences < 0).sum()), int((differences > 0).sum())
+    lower, higher = int((differences < 0).sum()), int((differences > 0).sum())
     return {
-        "n_both_succeeded": n,
+        "n_pairs": n,
+        "mean_a": float(pairs[:, 0].mean()),
+        "mean_b": float(pairs[:, 1].mean()),
         "mean_difference": float(differences.mean()),
         "mean_difference_ci95": [float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))],
-        "b_faster": faster,
-        "b_slower": slower,
-        "sign_test_p": mcnemar_exact_p(PairedTable(both=0, only_a=slower, only_b=faster, neither=0)),
+        "b_lower": lower,
+        "b_higher": higher,
+        "sign_test_p": mcnemar_exact_p(PairedTable(both=0, only_a=higher, only_b=lower, neither=0)),
     }
 
 
@@ -164,7 +225,21 @@ def comparison_lines(comparison: Mapping[str, Any]) -> list[str]:
             f"McNemar p {_p(row['mcnemar_p'])} ({row['discordant']['only_a']} only A, "
             f"{row['discordant']['only_b']} only B of {row['n_pairs']}); {timing}"
         )
+        lines.append(f"  smoothness B − A: {_smoothness_text(row.get('smoothness'))}")
     return lines
+
+
+def _smoothness_text(smoothness: Mapping[str, Any] | None) -> str:
+    if smoothness is None:
+        return "unavailable (a report without per-episode smoothness)"
+    parts = []
+    for name, (label, unit) in METRICS.items():
+        paired = smoothness.get(name)
+        if paired is None:
+            continue
+        low, high = paired["mean_difference_ci95"]
+        parts.append(f"{label} {paired['mean_difference']:+.3g} {unit} ({low:+.3g} to {high:+.3g})")
+    return "; ".join(parts) or "no seed with a value in both"
 
 
 def _p(value: float) -> str:

@@ -66,6 +66,8 @@ ROBOT_ID = "aloha_bimanual_viperx"
 SUCCESS_REWARD = 4
 _ROBOT_QPOS = 16
 """The robot's entries at the front of ``qpos``: per arm six joints and two fingers."""
+_GRIPPER_BODIES = ("vx300s_left/gripper_link", "vx300s_right/gripper_link")
+"""The bodies whose positions are the arms' end effectors."""
 
 
 @dataclass(frozen=True)
@@ -189,6 +191,10 @@ class AlohaEnv:
 
     def render(self, camera: str, width: int, height: int) -> np.ndarray:
         return self._views.render(camera, width, height)
+
+    def end_effector_positions(self) -> np.ndarray:
+        """Both grippers' link origins in the world, left arm first: ``(2, 3)``, metres."""
+        return np.array(self._physics.named.data.xpos[list(_GRIPPER_BODIES)], dtype=np.float64)
 
     def close(self) -> None:
         self._views.close()

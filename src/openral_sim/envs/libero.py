@@ -297,6 +297,11 @@ class LiberoEnv:
             return np.ascontiguousarray(frame[:, ::-1])
         return frame
 
+    def end_effector_positions(self) -> np.ndarray:
+        """The gripper's grip site in the world (the state's ``eef_x..z``), metres."""
+        env = self._env.env
+        return np.array(env.sim.data.site_xpos[env.robots[0].eef_site_id], dtype=np.float64)
+
     def close(self) -> None:
         self._views.close()
         self._env.close()

@@ -160,6 +160,10 @@ class MetaWorldEnv:
     def render(self, camera: str, width: int, height: int) -> np.ndarray:
         return self._views.render(camera, width, height)
 
+    def end_effector_positions(self) -> np.ndarray:
+        """The hand's position in the world (the state's first three values), metres."""
+        return np.array(self._env.get_endeff_pos(), dtype=np.float64)
+
     def close(self) -> None:
         self._views.close()
         self._env.close()  # type: ignore[no-untyped-call]

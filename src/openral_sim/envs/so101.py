@@ -110,6 +110,10 @@ class SO101Env:
         """Where a geom (``block``: the cube) lies in ``camera``'s image: a detector's ground truth."""
         return self._views.project_geom(geom, camera, width, height)
 
+    def end_effector_positions(self) -> np.ndarray:
+        """The end effector's position in the world (the arm's ``ee_pos`` sensor, the state's ``ee_x..z``), metres."""
+        return np.array(self._env.data.sensor("so101/ee_pos").data, dtype=np.float64)
+
     def base_position(self) -> np.ndarray:
         """The robot base's position in the world."""
         return np.array(self._env.data.xpos[self._base_id])

@@ -103,6 +103,8 @@ def test_a_seed_run_twice_in_a_row_is_refused() -> None:
         {"status": "completed", "episodes": [{"seed": 0, "success": True}]},  # no scene
         {"status": "completed", "scene": "x", "episodes": [{"seed": 0, "success": True, "steps_to_success": "3"}]},
         {"status": "completed", "scene": "x", "episodes": "none"},
+        {"status": "completed", "scene": "x", "episodes": [{"seed": 0, "success": True, "smoothness": 3}]},
+        {"status": "completed", "scene": "x", "episodes": [{"seed": 0, "success": 1, "smoothness": {"jerk_rms": ""}}]},
     ],
 )
 def test_a_file_that_is_no_report_is_refused_in_one_line(tmp_path: Path, row: dict[str, Any]) -> None:
@@ -110,6 +112,50 @@ def test_a_file_that_is_no_report_is_refused_in_one_line(tmp_path: Path, row: di
     path.write_text(json.dumps({"results": [row]}))
     with pytest.raises(ROSConfigError, match=r"^A: .*not a benchmark report with per-episode seeds"):
         load_report(path, field="A")
+
+
+def with_smoothness(document: dict[str, Any], jerks: list[float | None]) -> dict[str, Any]:
+    """``document`` whose episode k recorded jerk ``jerks[k]`` and one reversal per second more than its seed."""
+    for episode, jerk in zip(document["results"][0]["episodes"], jerks, strict=True):
+        episode["smoothness"] = {"commands": 100, "jerk_rms": jerk, "reversals_per_s": episode["seed"] + 1.0}
+    return document
+
+
+def test_smoothness_is_paired_by_seed_with_a_bootstrap_interval_and_a_sign_test() -> None:
+    outcomes: list[tuple[bool, int | None]] = [(True, 50)] * 8
+    a = with_smoothness(report("a", outcomes), [10.0, 12.0, 9.0, 11.0, 10.0, 14.0, 8.0, None])
+    b = with_smoothness(report("b", outcomes), [7.0, 9.0, 8.0, 8.0, 6.0, 10.0, 9.0, 5.0])
+    b["results"][0]["episodes"].reverse()  # pairs by seed, not by position
+    (row,) = compare_reports(a, b)["rows"]
+    jerk = row["smoothness"]["jerk_rms"]
+    assert jerk["n_pairs"] == 7  # seed 7 has no value in A
+    assert jerk["mean_a"] == pytest.approx(74 / 7)
+    assert jerk["mean_b"] == pytest.approx(57 / 7)
+    assert jerk["mean_difference"] == pytest.approx(-17 / 7)
+    low, high = jerk["mean_difference_ci95"]
+    assert low < -17 / 7 < high < 0
+    assert (jerk["b_lower"], jerk["b_higher"]) == (6, 1)
+    assert jerk["sign_test_p"] == pytest.approx(2 * (1 + 7) / 2**7)
+    reversals = row["smoothness"]["reversals_per_s"]
+    assert reversals["mean_difference"] == 0.0
+    assert reversals["sign_test_p"] == 1.0  # every pair tied: no evidence either way
+    assert row["smoothness"]["ee_path_length_m"] is None  # neither recorded it
+
+
+def test_a_report_without_smoothness_still_compares_and_says_it_is_unavailable(tmp_path: Path) -> None:
+    outcomes: list[tuple[bool, int | None]] = [(True, 50), (False, None)]
+    older, newer = report("a", outcomes), with_smoothness(report("b", outcomes), [1.0, 2.0])
+    for a, b in ((older, newer), (newer, older)):
+        (row,) = compare_reports(a, b)["rows"]
+        assert row["smoothness"] is None
+        assert row["discordant"] == {"only_a": 0, "only_b": 0}
+    paths = [tmp_path / "old.json", tmp_path / "new.json"]
+    for path, document in zip(paths, (older, newer), strict=True):
+        path.write_text(json.dumps(document), encoding="utf-8")
+    text = CliRunner().invoke(cli, ["benchmark", "compare", *map(str, paths), "--html", str(tmp_path / "ab.html")])
+    assert text.exit_code == 0, text.output
+    assert "smoothness B − A: unavailable" in text.output
+    assert "unavailable (not recorded)" in (tmp_path / "ab.html").read_text(encoding="utf-8")
 
 
 def test_compare_two_runs_of_a_suite_from_the_command_line(tmp_path: Path) -> None:
@@ -127,6 +173,10 @@ def test_compare_two_runs_of_a_suite_from_the_command_line(tmp_path: Path) -> No
     (row,) = json.loads(result.output)["rows"]
     assert (row["pc_success_a"], row["pc_success_b"]) == (0.0, 100.0)
     assert row["mcnemar_p"] == pytest.approx(2 / 2**8)
+    # Both runs recorded what they sent: jerk pairs every seed where both episodes sent four commands or more.
+    steps = [[e["steps"] for e in json.loads(out[s].read_text())["results"][0]["episodes"]] for s in out]
+    assert row["smoothness"]["jerk_rms"]["n_pairs"] == sum(min(x, y) >= 4 for x, y in zip(*steps, strict=True)) > 0
+    assert row["smoothness"]["ee_path_length_m"] is None  # the mock env reports no end effector
     text = CliRunner().invoke(cli, ["benchmark", "compare", str(out["zero"]), str(out["mock_reach_expert"])])
     assert "mock_reach: 0.0 % → 100.0 %, +100.0 pp (95 % CI +54.1 to +100.0), McNemar p 0.0078" in text.output
 
