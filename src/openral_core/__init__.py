@@ -53,8 +53,10 @@ from openral_core.sim import (
     EpisodeResult,
     EpisodeTiming,
     PrivilegedState,
+    RealTimeStats,
     SimCamera,
     SimEnvironment,
+    TimingMode,
 )
 from openral_core.skills import RSkillInfo, RSkillState
 from openral_core.world import ComponentDiagnostics, JointState, Pose6D, WorldState
@@ -104,6 +106,7 @@ __all__ = [
     "ROSUnavailable",
     "RSkillInfo",
     "RSkillState",
+    "RealTimeStats",
     "RealtimeConfig",
     "RobotEnvironment",
     "RobotManifest",
@@ -125,6 +128,7 @@ __all__ = [
     "TakeoverTrigger",
     "TaskSpec",
     "TickResult",
+    "TimingMode",
     "VLASpec",
     "VirtualLatency",
     "WithheldReason",

@@ -100,6 +100,8 @@ class ExecutorStats:
     unavailable_ticks: int = 0
     """Ticks on which the policy's source said it was down (and the fallback decided)."""
     errors: int = 0
+    stale_rows: int = 0
+    """Rows sent on a tick other than the one they were computed for (``indexing: stale_start`` only)."""
     delays_ticks: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=1000))
     """Delays of the most recent chunks used (bounded: a robot runs for days)."""
 
@@ -190,6 +192,8 @@ class ChunkedExecutor:
         self._epoch = 0
         self._next_id = 0
         self._held: np.ndarray | None = None
+        self._row_offset = 0
+        """Ticks between the tick a buffered row is served on and the tick it was computed for."""
         self._starved_in_row = 0
         self._in_flight: _Request | None = None
         self._latencies: collections.deque[int] = collections.deque(maxlen=_LATENCY_WINDOW)
@@ -259,6 +263,8 @@ class ChunkedExecutor:
         if row is not None:
             self._starved_in_row = 0
             self._held = row
+            if self._row_offset:
+                self.stats.stale_rows += 1
             return Decision(Outcome.ACTION, self._action(self.anchor.to_command(row, world), world))
         if self._held is None:
             return Decision(Outcome.NONE)
@@ -303,6 +309,7 @@ class ChunkedExecutor:
         reset = run or self._reset_policy
         self._buffer.clear()
         self._held = None
+        self._row_offset = 0
         self._starved_in_row = 0
         self._in_flight = None
         self._history.clear()  # a new episode's first request repeats its own first observation
@@ -421,6 +428,8 @@ class ChunkedExecutor:
             outcome[semconv.ATTR_EXECUTOR_DISCARDED] = "too_few_rows"
         else:
             self.stats.chunks_used += 1
+            # Tick-indexed rows are served on their own tick; a stale start serves row 0 on arrival.
+            self._row_offset = delay if self._buffer.stale_start else 0
         self._chunk_span(request, tick_idx, outcome)
 
     def _chunk_span(self, request: _Request, tick_idx: int, outcome: dict[str, Any]) -> None:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from openral_core import EpisodeResult, ObserverConfig, ROSDependencyMissing, SimEnvironment
+from openral_core import EpisodeResult, ObserverConfig, RealTimeStats, ROSDependencyMissing, SimEnvironment
 from openral_sim.build import EpisodeBatch, SimCache, SkillFailed
 from openral_sim.time_to_success import time_to_success
 
@@ -386,10 +386,30 @@ def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = No
         },
         "time_to_success": time_to_success([e.steps_to_success for e in episodes]),
     }
+    live = [e.real_time for e in episodes if e.real_time is not None]
+    if live:
+        summary["real_time"] = real_time_summary(live)
     if batch is not None:
         summary["tick_ms"] = _percentiles(batch.tick_ms)
         summary["inference_ms"] = _percentiles(batch.inference_ms)
     return summary
+
+
+def real_time_summary(episodes: Sequence[RealTimeStats]) -> dict[str, Any]:
+    """A row's real-time figures, pooled over its episodes' env steps and wall time (see :class:`RealTimeStats`)."""
+    steps = sum(e.policy_ticks + e.held_slots for e in episodes)
+    wall_s = sum(e.wall_s for e in episodes)
+    held = sum(e.held_ticks + e.held_slots for e in episodes)
+    stale = sum(e.stale_ticks for e in episodes)
+    commands = sum(e.fresh_ticks + e.stale_ticks for e in episodes)
+    return {
+        "stale_or_held_ratio": (held + stale) / steps if steps else 0.0,
+        "held_ratio": held / steps if steps else 0.0,
+        "stale_ratio": stale / steps if steps else 0.0,
+        "held_slots": sum(e.held_slots for e in episodes),
+        "commands_per_s": commands / wall_s if wall_s > 0 else 0.0,
+        "steps_per_s": steps / wall_s if wall_s > 0 else 0.0,
+    }
 
 
 LATENCY_BINS = 40
