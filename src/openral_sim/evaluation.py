@@ -412,6 +412,17 @@ def real_time_summary(episodes: Sequence[RealTimeStats]) -> dict[str, Any]:
     }
 
 
+def real_time_note(summary: dict[str, Any]) -> str:
+    """A summary's real-time figures as a clause for a terminal line; empty when it has none."""
+    live = summary.get("real_time")
+    if not live:
+        return ""
+    return (
+        f"; real time: {100.0 * live['stale_or_held_ratio']:.1f} % of steps stale or held, "
+        f"{live['commands_per_s']:.1f} policy commands/s, {live['steps_per_s']:.1f} steps/s"
+    )
+
+
 LATENCY_BINS = 40
 """Bins of a report's latency histogram: the shape of every step's time in a few hundred bytes per row."""
 
