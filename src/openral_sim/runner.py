@@ -15,6 +15,10 @@ ends as ``faults`` (never as a cut-off at ``max_steps``) and is not kept by a re
 
 Observers hear the episode boundaries as on hardware, so a ``RolloutRecorder`` records simulated
 episodes through the same path.
+
+In real time (``virtual_latency: measured``) the wall clock paces the ticks and the world does not
+wait for a late one: each slot a tick overran is an env step with the hold action (observers hear
+ticks only), and each episode reports its stale or held steps (:mod:`openral_sim.real_time`).
 """
 
 from __future__ import annotations
@@ -65,7 +69,8 @@ class SimRunner(SkillRunnerBase):
         n_episodes: Episodes to run (the scene's count by default).
         close_env: Close ``env`` on ``deactivate``; ``False`` when the env outlives the runner (an
             evaluation worker keeps its env for the next slice of episodes).
-        **base_kwargs: ``InferenceRunnerBase`` options; free-running unless the scene sets ``rate_hz``.
+        **base_kwargs: ``InferenceRunnerBase`` options; free-running unless the scene sets ``rate_hz``
+            or runs in real time (``virtual_latency: measured``).
     """
 
     def __init__(
