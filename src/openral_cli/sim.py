@@ -360,7 +360,7 @@ def benchmark_run(
                 requested=workers,
                 served=None if serving is None else serving.described(evaluator.processes),
                 baseline=baseline_path,
-                measured_rows=[row.label for row in rows if row.scene.timing == "measured"],
+                measured_rows=[row.label for row in rows if row.scene.timing != "virtual"],
             ),
         )
         if compare and baseline is not None and outcome.error is None:

@@ -45,8 +45,8 @@ def provenance(
 
     ``served`` (how rows' policies were served) and ``baseline`` (the report speed-ups are measured
     against) are named only when the run had them; so is ``real_time``, for ``measured_rows`` (the
-    labels of rows paced by the wall clock): their outcomes depend on this machine, its load and
-    the workers sharing it, which it names.
+    labels of rows whose inference took its real time: ``measured`` or ``real`` timing): their
+    outcomes depend on this machine, its load and the workers sharing it, which it names.
     """
     described: dict[str, Any] = {
         "packages": package_versions(PROVENANCE_PACKAGES),
@@ -70,7 +70,7 @@ def provenance(
     if measured_rows:
         described["real_time"] = {
             "rows": list(measured_rows),
-            "outcomes": "machine-dependent: paced by the wall clock, with the policy's real inference time",
+            "outcomes": "machine-dependent: the policy's real inference time, on this machine and its load",
             "cpu_model": cpu_model(),
             "cpus": os.cpu_count(),
             "workers": workers,
