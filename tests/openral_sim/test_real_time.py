@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
+from pathlib import Path
 from statistics import median
 from typing import Any
 
@@ -22,6 +23,7 @@ from openral_core import (
     ExecutorConfig,
     RealTimeStats,
     RobotManifest,
+    ROSConfigError,
     RSkillInfo,
     SimEnvironment,
     VirtualLatency,
@@ -262,3 +264,18 @@ def test_real_time_scores_what_the_virtual_delay_it_measured_scores_and_a_faster
     for episode in slow.episode_results:
         assert episode.real_time is not None
         assert episode.real_time.held_ticks > 0  # the 3-tick delay starves two ticks of each chunk
+
+
+def test_a_scene_file_asks_for_real_time_by_name_and_a_misspelt_mode_is_refused(tmp_path: Path) -> None:
+    scene = tmp_path / "scene.yaml"
+    base = "name: s\nenv: mock\ntask: t\nmax_steps: 5\n"
+    scene.write_text(base + "virtual_latency: measured\n")
+    assert SimEnvironment.from_yaml(scene).timing == "measured"
+    assert SimEnvironment.from_yaml(scene).simulated_latency is None
+    scene.write_text(base + "virtual_latency: null\n")
+    assert SimEnvironment.from_yaml(scene).timing == "real"
+    scene.write_text(base)
+    assert SimEnvironment.from_yaml(scene).timing == "virtual"
+    scene.write_text(base + "virtual_latency: measure\n")
+    with pytest.raises(ROSConfigError, match="virtual_latency"):
+        SimEnvironment.from_yaml(scene)
