@@ -56,6 +56,14 @@ def _stdout_to_stderr(active: bool) -> Iterator[None]:
         os.close(saved)
 
 
+REAL_TIME_OPTION = click.option(
+    "--real-time",
+    is_flag=True,
+    help="Pace the simulation by the wall clock while the policy infers on its worker (virtual_latency: "
+    "measured): a slow policy loses steps as on a robot, and outcomes depend on this machine.",
+)
+
+
 @click.group()
 def sim() -> None:
     """Evaluate skills in simulation."""
@@ -79,6 +87,7 @@ def sim() -> None:
 @click.option(
     "--no-cameras", is_flag=True, help="Render none of the scene's cameras (state-only skills: tens of ms a step less)."
 )
+@REAL_TIME_OPTION
 @VCODEC_OPTION
 @CONSOLE_OPTION
 @FOXGLOVE_OPTION
@@ -99,6 +108,7 @@ def sim_run(
     dataset_out: Path | None,
     resume: bool,
     no_cameras: bool,
+    real_time: bool,
     vcodec: str,
     console: ConsoleAddress | None,
     foxglove_port: int | None,
@@ -119,6 +129,8 @@ def sim_run(
         scene = with_overrides(SimEnvironment.from_yaml(config_path), n_episodes, seed)
         if no_cameras:
             scene = scene.model_copy(update={"cameras": []})
+        if real_time:
+            scene = scene.model_copy(update={"virtual_latency": "measured"})
         params = json_object(skill_params, "--skill-params")
         if dataset_out is not None:  # first, as on deploy: it hears each tick before the viewers
             scene = with_observers(scene, dataset_entry(dataset_out, resume=resume, vcodec=vcodec), first=True)
@@ -154,6 +166,7 @@ def sim_run(
             "skill": skill_id,
             "skill_params": params,
             "seed": scene.seed,
+            "timing": scene.timing,
             **evaluation.summarize(batch.episodes, batch),
             "episodes": [e.model_dump(mode="json") for e in batch.episodes],
         }
@@ -186,11 +199,14 @@ def _videos_written(observers: list[Any]) -> list[Path]:
 
 
 def _summary_line(report: dict[str, Any]) -> str:
+    from openral_sim.evaluation import real_time_note  # noqa: PLC0415
+
     low, high = report["pc_success_ci95"]
     return (
         f"{report['scene']} / {report['skill']}: {report['pc_success']:.1f} % success "
         f"({report['n_success']}/{report['n_episodes']}, 95 % CI {low:.1f}–{high:.1f} %), "
         f"avg sum reward {report['avg_sum_reward']:.3f}, avg max reward {report['avg_max_reward']:.3f}"
+        f"{real_time_note(report)}"
     )
 
 
@@ -256,6 +272,7 @@ def benchmark() -> None:
     show_default=True,
     help="--serve with --ray: GPUs for the server's Ray actor.",
 )
+@REAL_TIME_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON document on stdout, nothing else.")
 @click.pass_context
 def benchmark_run(
@@ -272,6 +289,7 @@ def benchmark_run(
     serve: bool,
     serve_max_batch: int | None,
     serve_gpus: float,
+    real_time: bool,
     as_json: bool,
 ) -> None:
     """Evaluate every row of a suite; report success with 95 % intervals, latency percentiles and provenance.
@@ -282,6 +300,9 @@ def benchmark_run(
 
     With --serve each row's policy is served once (a Ray actor with --ray) and the episodes run as
     its remote_policy clients; with the scene's virtual_latency the outcomes are the local run's.
+
+    With --real-time every row runs paced by the wall clock (virtual_latency: measured); the
+    provenance names the rows whose outcomes depend on this machine.
     """
     started = time.perf_counter()
     # The simulation stack loads for the simulation commands only.
@@ -290,7 +311,7 @@ def benchmark_run(
     from openral_sim.benchmark.compare import comparison_lines  # noqa: PLC0415
     from openral_sim.benchmark.provenance import provenance  # noqa: PLC0415
     from openral_sim.benchmark.report import markdown_table, suite_document, table_line  # noqa: PLC0415
-    from openral_sim.benchmark.rows import load_rows  # noqa: PLC0415
+    from openral_sim.benchmark.rows import in_real_time, load_rows  # noqa: PLC0415
     from openral_sim.benchmark.suite_run import ServeOptions, run_suite, worker_processes  # noqa: PLC0415
     from openral_sim.evaluation import Evaluator  # noqa: PLC0415
 
@@ -307,6 +328,8 @@ def benchmark_run(
         baseline = load_baseline(baseline_path) if baseline_path is not None else None
         hasher = hashlib.sha256(config_path.read_bytes())
         rows = load_rows(suite, config_path, hasher, render_all=video_dir is not None)
+        if real_time:
+            rows = in_real_time(rows)
         compare = baseline is not None and check_baseline(baseline, rows)
         processes = workers
         if ray_address is None:
@@ -337,6 +360,7 @@ def benchmark_run(
                 requested=workers,
                 served=None if serving is None else serving.described(evaluator.processes),
                 baseline=baseline_path,
+                measured_rows=[row.label for row in rows if row.scene.timing != "virtual"],
             ),
         )
         if compare and baseline is not None and outcome.error is None:

@@ -54,8 +54,10 @@ from openral_core.sim import (
     EpisodeSmoothness,
     EpisodeTiming,
     PrivilegedState,
+    RealTimeStats,
     SimCamera,
     SimEnvironment,
+    TimingMode,
 )
 from openral_core.skills import RSkillInfo, RSkillState
 from openral_core.world import ComponentDiagnostics, JointState, Pose6D, WorldState
@@ -106,6 +108,7 @@ __all__ = [
     "ROSUnavailable",
     "RSkillInfo",
     "RSkillState",
+    "RealTimeStats",
     "RealtimeConfig",
     "RobotEnvironment",
     "RobotManifest",
@@ -127,6 +130,7 @@ __all__ = [
     "TakeoverTrigger",
     "TaskSpec",
     "TickResult",
+    "TimingMode",
     "VLASpec",
     "VirtualLatency",
     "WithheldReason",

@@ -11,6 +11,10 @@ from openral_core.config_files import CONFIG_DIR
 from openral_core.environment import Watched
 from openral_core.execution import ExecutorConfig, VirtualLatency
 
+TimingMode = Literal["virtual", "measured", "real"]
+"""How a scene's inference time reaches its episodes: ``virtual`` (a set number of ticks, reproducible),
+``measured`` (paced by the wall clock, machine-dependent) or ``real`` (real latency, free-running)."""
+
 SuccessKey = Literal["is_success", "succeed", "success"]
 """The ``info`` keys simulators report success under (gym-pusht/LIBERO, lerobot-env-so101, MetaWorld)."""
 
@@ -51,10 +55,12 @@ class SimEnvironment(Watched):
     )
     latency_budget_ms: float | None = Field(default=None, gt=0, description="Steps longer than this are counted.")
     executor: ExecutorConfig = Field(default_factory=ExecutorConfig, description="How chunking skills are executed.")
-    virtual_latency: VirtualLatency | None = Field(
+    virtual_latency: VirtualLatency | Literal["measured"] | None = Field(
         default_factory=VirtualLatency,
         description="Ticks from a chunk request to its use: inference is simulated, so results reproduce. "
-        "null: the real latency (inference on the executor's worker, as on a robot; pace with rate_hz).",
+        "measured: real time (the wall clock paces the steps at rate_hz, else the env's control rate; the "
+        "policy infers on the executor's worker; a late tick's skipped slots are stepped with the hold), so "
+        "outcomes depend on the machine. null: the real latency, free-running unless rate_hz is set.",
     )
     base_dir: str | None = Field(
         default=None,
@@ -68,6 +74,18 @@ class SimEnvironment(Watched):
         if self.base_dir is None and isinstance(folder, str):
             return self.model_copy(update={"base_dir": folder})
         return self
+
+    @property
+    def timing(self) -> TimingMode:
+        """How inference time reaches the episodes: ``virtual``, ``measured`` or ``real`` (see ``virtual_latency``)."""
+        if self.virtual_latency is None:
+            return "real"
+        return "measured" if self.virtual_latency == "measured" else "virtual"
+
+    @property
+    def simulated_latency(self) -> VirtualLatency | None:
+        """The virtual latency when inference is simulated, ``None`` when it takes its real time."""
+        return self.virtual_latency if isinstance(self.virtual_latency, VirtualLatency) else None
 
     def resolve_path(self, path: str) -> Path:
         """``path`` (an ``env_kwargs`` file) as the scene means it: relative to ``base_dir``."""
@@ -148,10 +166,56 @@ class EpisodeSmoothness(BaseModel):
     ee_path_length_m: float | None = Field(default=None, description="Path length of the end effector(s), metres.")
 
 
+class RealTimeStats(BaseModel):
+    """How an episode kept up with the wall clock (``virtual_latency: measured``): measured, so never compared.
+
+    Every env step is either a *policy tick* (the controller ran) or a *held slot* (a tick overran
+    its slot, and the slot was stepped with the hold action, as a robot holds while its
+    controller is late). A policy tick is *fresh* when it sent a row the policy computed for that
+    very tick (a chunk's row for its own tick, or a non-chunking skill's action), *held* when it
+    sent no fresh row (starved or waiting for the first chunk, the fallback acting, or the action
+    withheld), and *stale* when it sent a fresh row computed for another tick: only
+    ``indexing: stale_start`` does that (each chunk runs from its first row however late it
+    arrives); tick-indexed execution skips the rows of past ticks, so it has no stale ticks.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    policy_ticks: int = Field(ge=0, description="Env steps on which the controller ran.")
+    held_slots: int = Field(ge=0, description="Env steps of skipped slots, stepped with the hold action.")
+    fresh_ticks: int = Field(ge=0, description="Policy ticks that sent a row computed for that tick.")
+    held_ticks: int = Field(ge=0, description="Policy ticks that sent no fresh row (starved, none yet, withheld).")
+    stale_ticks: int = Field(ge=0, description="Policy ticks that sent a row computed for another tick.")
+    wall_s: float = Field(ge=0, description="Wall time from the first step's start to the end of the last's slot.")
+    stale_or_held_ratio: float = Field(ge=0, le=1, description="(stale + held ticks + held slots) / env steps.")
+    commands_per_s: float = Field(ge=0, description="Rows of the policy sent (fresh or stale) per wall second.")
+    steps_per_s: float = Field(ge=0, description="Env steps per wall second.")
+
+    @classmethod
+    def of(
+        cls, *, policy_ticks: int, held_slots: int, fresh_ticks: int, held_ticks: int, stale_ticks: int, wall_s: float
+    ) -> RealTimeStats:
+        """The counts with their ratio and rates."""
+        steps = policy_ticks + held_slots
+        per_s = 1.0 / wall_s if wall_s > 0 else 0.0
+        return cls(
+            policy_ticks=policy_ticks,
+            held_slots=held_slots,
+            fresh_ticks=fresh_ticks,
+            held_ticks=held_ticks,
+            stale_ticks=stale_ticks,
+            wall_s=wall_s,
+            stale_or_held_ratio=(stale_ticks + held_ticks + held_slots) / steps if steps else 0.0,
+            commands_per_s=(fresh_ticks + stale_ticks) * per_s,
+            steps_per_s=steps * per_s,
+        )
+
+
 class EpisodeResult(BaseModel):
     """One simulated episode's outcome, derived from its ticks.
 
-    Everything but :attr:`timing` depends only on the scene, the skill and :attr:`seed`.
+    Everything but :attr:`timing` and :attr:`real_time` depends only on the scene, the skill and
+    :attr:`seed`, unless the scene runs in real time (``virtual_latency: measured``).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", ser_json_inf_nan="constants")
@@ -182,9 +246,12 @@ class EpisodeResult(BaseModel):
             return None
         return self.steps_to_success / self.control_hz
 
+    real_time: RealTimeStats | None = None
+    """How the episode kept up with the wall clock; only under ``virtual_latency: measured``."""
+
     def outcome(self) -> dict[str, Any]:
-        """Every field but the timing: what must be identical for identical seeds."""
-        return self.model_dump(exclude={"timing"})
+        """Every field but the measured ones: what must be identical for identical seeds."""
+        return self.model_dump(exclude={"timing", "real_time"})
 
 
 class BenchmarkRun(BaseModel):

@@ -102,6 +102,8 @@ class ExecutorStats:
     unavailable_ticks: int = 0
     """Ticks on which the policy's source said it was down (and the fallback decided)."""
     errors: int = 0
+    stale_rows: int = 0
+    """Rows sent on a tick other than the one they were computed for (``indexing: stale_start`` only)."""
     delays_ticks: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=1000))
     """Delays of the most recent chunks used (bounded: a robot runs for days)."""
 
@@ -195,6 +197,8 @@ class ChunkedExecutor:
         self._buffered_chunk: int | None = None
         """The request whose chunk the buffer's rows are from: placing one replaces every row from its tick on."""
         self._held_chunk: int | None = None
+        self._row_offset = 0
+        """Ticks between the tick a buffered row is served on and the tick it was computed for."""
         self._starved_in_row = 0
         self._in_flight: _Request | None = None
         self._latencies: collections.deque[int] = collections.deque(maxlen=_LATENCY_WINDOW)
@@ -265,6 +269,8 @@ class ChunkedExecutor:
             self._starved_in_row = 0
             self._held = row
             self._held_chunk = chunk = self._buffered_chunk
+            if self._row_offset:
+                self.stats.stale_rows += 1
             return Decision(Outcome.ACTION, self._action(self.anchor.to_command(row, world), world), chunk)
         if self._held is None:
             return Decision(Outcome.NONE)
@@ -309,6 +315,7 @@ class ChunkedExecutor:
         reset = run or self._reset_policy
         self._buffer.clear()
         self._held = None
+        self._row_offset = 0
         self._starved_in_row = 0
         self._in_flight = None
         self._history.clear()  # a new episode's first request repeats its own first observation
@@ -428,6 +435,8 @@ class ChunkedExecutor:
         else:
             self.stats.chunks_used += 1
             self._buffered_chunk = request.request_id
+            # Tick-indexed rows are served on their own tick; a stale start serves row 0 on arrival.
+            self._row_offset = delay if self._buffer.stale_start else 0
         self._chunk_span(request, tick_idx, outcome)
 
     def _chunk_span(self, request: _Request, tick_idx: int, outcome: dict[str, Any]) -> None:

@@ -205,6 +205,14 @@ class InferenceRunnerBase(ABC):
         """When slot 0 of ``run()`` starts (scheduling clock); subclasses may choose a phase. Now by default."""
         return self._clock.now()
 
+    def _on_missed_slots(self, skipped: int) -> None:
+        """Subclass hook: the last tick overran and ``skipped`` slots passed without a tick. Nothing by default.
+
+        A simulation paced by the wall clock steps its world through them (as a robot keeps
+        moving while its controller is late).
+        """
+        return
+
     def _should_terminate(self) -> bool:
         """Subclass hook consulted after each tick; ``True`` ends ``run()`` (``stop_reason="terminated"``)."""
         return False
@@ -452,6 +460,10 @@ class InferenceRunnerBase(ABC):
                 if skipped > 0:
                     self._stats.missed_slots += skipped
                     metrics.add(semconv.METRIC_MISSED_SLOTS, skipped, self._metric_attrs)
+                    self._on_missed_slots(skipped)
+                    if self._should_terminate():  # the world, stepped through the skipped slots, ended the run
+                        stop_reason = StopReason.TERMINATED
+                        break
             slot = next_slot
             if collector is not None:
                 collector.collect_if_due(t0 + slot * period - clock.now())

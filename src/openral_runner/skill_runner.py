@@ -237,6 +237,7 @@ class SkillRunnerBase(InferenceRunnerBase):
                 "starved_ticks": stats.starved_ticks,
                 "unavailable_ticks": stats.unavailable_ticks,
                 "errors": stats.errors,
+                "stale_rows": stats.stale_rows,
             }
         if self.takeover is not None:
             self.metadata["takeover"] = {

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from openral_core import EpisodeResult, ObserverConfig, ROSDependencyMissing, SimEnvironment
+from openral_core import EpisodeResult, ObserverConfig, RealTimeStats, ROSDependencyMissing, SimEnvironment
 from openral_sim import smoothness
 from openral_sim.build import EpisodeBatch, SimCache, SkillFailed
 from openral_sim.time_to_success import time_to_success
@@ -391,6 +391,9 @@ def summarize(episodes: Sequence[EpisodeResult], batch: EpisodeBatch | None = No
         "time_to_success": time_to_success([e.steps_to_success for e in episodes], _control_hz(episodes)),
         "smoothness": smoothness.summarize(episodes),
     }
+    live = [e.real_time for e in episodes if e.real_time is not None]
+    if live:
+        summary["real_time"] = real_time_summary(live)
     if batch is not None:
         summary["tick_ms"] = _percentiles(batch.tick_ms)
         summary["inference_ms"] = _percentiles(batch.inference_ms)
@@ -401,6 +404,34 @@ def _control_hz(episodes: Sequence[EpisodeResult]) -> float | None:
     """The rate the row's episodes share (``None``: not recorded, or not one rate)."""
     rates = {e.control_hz for e in episodes}
     return rates.pop() if len(rates) == 1 else None
+
+
+def real_time_summary(episodes: Sequence[RealTimeStats]) -> dict[str, Any]:
+    """A row's real-time figures, pooled over its episodes' env steps and wall time (see :class:`RealTimeStats`)."""
+    steps = sum(e.policy_ticks + e.held_slots for e in episodes)
+    wall_s = sum(e.wall_s for e in episodes)
+    held = sum(e.held_ticks + e.held_slots for e in episodes)
+    stale = sum(e.stale_ticks for e in episodes)
+    commands = sum(e.fresh_ticks + e.stale_ticks for e in episodes)
+    return {
+        "stale_or_held_ratio": (held + stale) / steps if steps else 0.0,
+        "held_ratio": held / steps if steps else 0.0,
+        "stale_ratio": stale / steps if steps else 0.0,
+        "held_slots": sum(e.held_slots for e in episodes),
+        "commands_per_s": commands / wall_s if wall_s > 0 else 0.0,
+        "steps_per_s": steps / wall_s if wall_s > 0 else 0.0,
+    }
+
+
+def real_time_note(summary: dict[str, Any]) -> str:
+    """A summary's real-time figures as a clause for a terminal line; empty when it has none."""
+    live = summary.get("real_time")
+    if not live:
+        return ""
+    return (
+        f"; real time: {100.0 * live['stale_or_held_ratio']:.1f} % of steps stale or held, "
+        f"{live['commands_per_s']:.1f} policy commands/s, {live['steps_per_s']:.1f} steps/s"
+    )
 
 
 LATENCY_BINS = 40

@@ -87,6 +87,7 @@ def render(document: Document) -> str:
         "each metric's mean / p95 over the row's episodes. The README defines each metric and its unit.</p>",
         f'<div class="wide">{_smoothness_table(completed)}</div>',
         "</section>",
+        *_real_time_section(completed),
         *([html_comparison.comparison_section(document["comparison"])] if document.get("comparison") else []),
         *_figures(completed),
         '<section id="provenance">',
@@ -207,6 +208,36 @@ def _figures(completed: Sequence[Mapping[str, Any]]) -> Iterable[str]:
         yield "</section>"
 
 
+def _real_time_section(completed: Sequence[Mapping[str, Any]]) -> Iterable[str]:
+    """The rows run in real time: their share of stale or held steps and effective rates (none: no section)."""
+    live = [row for row in completed if row.get("real_time")]
+    if not live:
+        return
+    head = ("row", "stale or held steps", "held", "stale", "held slots", "policy commands/s", "steps/s")
+    yield '<section id="real-time">'
+    yield "<h2>Real time</h2>"
+    yield (
+        "<p>Rows paced by the wall clock with the policy's real inference time "
+        "(<code>virtual_latency: measured</code>): their outcomes depend on the machine.</p>"
+    )
+    yield "<table><thead><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>"
+    for row in live:
+        figures = row["real_time"]
+        cells = [
+            f"<td>{_e(row.get('label'))}</td>",
+            *(
+                f'<td class="{_NUMBER.strip()}">{_number(100.0 * figures[key], ".1f")} %</td>'
+                for key in ("stale_or_held_ratio", "held_ratio", "stale_ratio")
+            ),
+            f'<td class="{_NUMBER.strip()}">{_e(figures["held_slots"])}</td>',
+            f'<td class="{_NUMBER.strip()}">{_number(figures["commands_per_s"], ".1f")}</td>',
+            f'<td class="{_NUMBER.strip()}">{_number(figures["steps_per_s"], ".1f")}</td>',
+        ]
+        yield "<tr>" + "".join(cells) + "</tr>"
+    yield "</tbody></table>"
+    yield "</section>"
+
+
 def _provenance_table(provenance: Mapping[str, Any]) -> str:
     lines = ['<table class="provenance">', "<tbody>"]
     for key, value in flatten(provenance):
@@ -217,7 +248,7 @@ def _provenance_table(provenance: Mapping[str, Any]) -> str:
 
 def _rows_table(results: Sequence[Mapping[str, Any]]) -> str:
     """What each row ran: its scene, environment, skill with its parameters, and seeds."""
-    keys = ("label", "scene", "env", "env_id", "skill", "skill_params", "seeds")
+    keys = ("label", "scene", "env", "env_id", "skill", "skill_params", "seeds", "timing")
     lines = ['<table class="rows">', "<thead><tr>" + "".join(f"<th>{k}</th>" for k in keys) + "</tr></thead>"]
     lines.append("<tbody>")
     for row in results:

@@ -15,6 +15,10 @@ ends as ``faults`` (never as a cut-off at ``max_steps``) and is not kept by a re
 
 Observers hear the episode boundaries as on hardware, so a ``RolloutRecorder`` records simulated
 episodes through the same path.
+
+In real time (``virtual_latency: measured``) the wall clock paces the ticks and the world does not
+wait for a late one: each slot a tick overran is an env step with the hold action (observers hear
+ticks only), and each episode reports its stale or held steps (:mod:`openral_sim.real_time`).
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from openral_runner.safety import SafetyClient
 from openral_runner.skill_runner import SkillRunnerBase
 from openral_runner.tick_context import TickContext
 from openral_sim.env import EndEffectorSensing, SimEnv, SimObservation
+from openral_sim.real_time import RealTimeTally
 from openral_sim.safety import ActionBoxSafetyClient
 from openral_sim.smoothness import ActionGeometry, CommandLog
 
@@ -65,7 +70,8 @@ class SimRunner(SkillRunnerBase):
         n_episodes: Episodes to run (the scene's count by default).
         close_env: Close ``env`` on ``deactivate``; ``False`` when the env outlives the runner (an
             evaluation worker keeps its env for the next slice of episodes).
-        **base_kwargs: ``InferenceRunnerBase`` options; free-running unless the scene sets ``rate_hz``.
+        **base_kwargs: ``InferenceRunnerBase`` options; free-running unless the scene sets ``rate_hz``
+            or runs in real time (``virtual_latency: measured``).
     """
 
     def __init__(
@@ -82,15 +88,16 @@ class SimRunner(SkillRunnerBase):
     ) -> None:
         base_kwargs.setdefault("runner_name", scene.name)
         base_kwargs.setdefault("rate_hz", scene.rate_hz or env.spec.control_hz)
-        base_kwargs.setdefault("free_running", scene.rate_hz is None)
+        base_kwargs.setdefault("free_running", scene.rate_hz is None and scene.timing != "measured")
         base_kwargs.setdefault("latency_budget_ms", scene.latency_budget_ms)
+        latency = scene.simulated_latency
         super().__init__(
             skill=skill,
             safety_client=safety_client or ActionBoxSafetyClient(env.spec),
             task=scene.task,
             executor=scene.executor,
             action_names=list(env.spec.action_names),
-            virtual_delay=None if scene.virtual_latency is None else scene.virtual_latency.sampler(scene.seed),
+            virtual_delay=None if latency is None else latency.sampler(scene.seed),
             **base_kwargs,
         )
         self.env = env
@@ -112,6 +119,8 @@ class SimRunner(SkillRunnerBase):
         self._geometry = ActionGeometry.of(env.spec)
         self._end_effector = env if isinstance(env, EndEffectorSensing) else None
         """Decided once: whether the env reports its end effector (for the path length)."""
+        self._real_time: RealTimeTally | None = None
+        """The episode under way's real-time tally (``virtual_latency: measured`` only)."""
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -173,13 +182,15 @@ class SimRunner(SkillRunnerBase):
         index = self.first_episode + len(self.episode_results)
         seed = self.scene.seed + index
         self._observation = self.env.reset(seed)
-        if self.executor is not None and self.scene.virtual_latency is not None:
-            self.executor.virtual_delay = self.scene.virtual_latency.sampler(seed)
+        latency = self.scene.simulated_latency
+        if self.executor is not None and latency is not None:
+            self.executor.virtual_delay = latency.sampler(seed)
         self._reset_skill(seed)
         tick.hal_ms = (now() - t0) * 1e3
         self._episode = episode = _EpisodeTally(index, seed)
         if self._end_effector is not None:
             episode.log.position(self._end_effector.end_effector_positions())
+        self._real_time = RealTimeTally(self.period_s) if self.scene.timing == "measured" else None
         tick.episode_idx = index
         self._tell_episode_start(index, self.scene.task)
 
@@ -255,7 +266,12 @@ class SimRunner(SkillRunnerBase):
 
     def _run_tick(self, tick: TickContext, *, slot_start_s: float | None = None) -> TickResult:
         """Run the tick; an episode it ended is closed after the observers have seen its last step."""
+        real_time = self._real_time
+        if real_time is not None:
+            real_time.before_tick(self.executor)
         result = super()._run_tick(tick, slot_start_s=slot_start_s)
+        if real_time is not None and result.step_idx is not None:
+            real_time.after_tick(result, self.executor, start_s=tick.start_s)
         faulted = self.stop_requested is StopReason.FAULTS
         if faulted and self._failure is None:
             self._failure = self._describe_failure(result)
@@ -279,6 +295,25 @@ class SimRunner(SkillRunnerBase):
                 if isinstance(observer, QueuedObserver):
                     observer.wait_for_room()
         return result
+
+    def _on_missed_slots(self, skipped: int) -> None:
+        """In real time the world does not wait for a late tick: each skipped slot is an env step with the hold action.
+
+        Only once the episode has had its first step; the executor's ticks count slots, so the
+        rows meant for the skipped slots are past when the next tick runs.
+        """
+        if self.scene.timing != "measured":
+            return
+        self._tick_idx += skipped
+        for _ in range(skipped):
+            episode, real_time = self._episode, self._real_time
+            if episode is None or real_time is None or episode.steps == 0 or self.stop_requested is not None:
+                return
+            real_time.held_slot(self._clock.now())
+            self._actuate(TickContext(self._tick_idx, 0.0, 0.0), None)
+            if episode.pending_end is not None:
+                self._require_success_key(episode)
+                self._finish_episode(episode.pending_end, success=episode.steps_to_success is not None)
 
     def _on_skill_done(self, reason: str, tick_idx: int) -> None:
         """In simulation a skill that is done ends its episode, not the evaluation."""
@@ -328,7 +363,9 @@ class SimRunner(SkillRunnerBase):
                 inference_ms_mean=episode.inference_ms / steps,
                 budget_violations=episode.budget_violations,
             ),
+            real_time=None if self._real_time is None else self._real_time.stats(),
         )
+        self._real_time = None
         self.episode_results.append(result)
         self._tell_episode_end(episode.index, success=success, keep=keep)
 

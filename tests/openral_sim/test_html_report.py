@@ -167,7 +167,7 @@ def test_the_page_plots_every_row_prints_the_json_numbers_and_its_provenance(tmp
     assert page.provenance["config_sha256"] == document["provenance"]["config_sha256"]
     assert page.provenance["packages.numpy"] == document["provenance"]["packages"]["numpy"]
     assert [cells[0] for cells in page.rows] == labels
-    assert [cells[-1] for cells in page.rows] == ["[0, 2]", "[7, 8]"]
+    assert [cells[-2:] for cells in page.rows] == [["[0, 2]", "virtual"], ["[7, 8]", "virtual"]]
 
     # Self-contained: nothing is fetched, nothing runs, and user strings come out as text.
     assert not {"script", "link", "img", "iframe", "object", "embed"} & set(page.tags)

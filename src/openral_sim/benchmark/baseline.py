@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from openral_core import ROSConfigError
-from openral_sim.benchmark.compare import PAIRED_FIELDS, compare_reports, load_report
+from openral_sim.benchmark.compare import PAIRED_FIELDS, compare_reports, load_report, timing_problem
 from openral_sim.benchmark.rows import SuiteRow
 
 BASELINE_OPTION = "--baseline"
@@ -85,6 +85,9 @@ def pairing_problem(baseline: Baseline, rows: Sequence[SuiteRow]) -> str | None:
         if len(found) != 1:
             return f"the baseline has {len(found)} completed rows of scene {row.scene.name!r}, not one"
         head = row.head()
+        mismatch = timing_problem(found[0], head, ("the baseline", "this run"))
+        if mismatch is not None:
+            return f"scene {row.scene.name!r}: {mismatch}"
         for key in (*PAIRED_FIELDS, "seeds"):
             if found[0].get(key) != head[key]:
                 return f"scene {row.scene.name!r} has {key} {found[0].get(key)!r} in the baseline, {head[key]!r} here"

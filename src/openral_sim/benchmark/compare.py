@@ -110,6 +110,9 @@ def compare_rows(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
         ROSConfigError: The rows differ in environment or seeds.
     """
     scene = a["scene"]
+    mismatch = timing_problem(a, b)
+    if mismatch is not None:
+        raise ROSConfigError(f"scene {scene!r}: {mismatch}", field=f"B.results[{scene}].timing")
     for key in (*PAIRED_FIELDS, "seeds"):
         if a.get(key) != b.get(key):
             raise ROSConfigError(
@@ -147,6 +150,25 @@ def compare_rows(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
         ),
         "smoothness": paired_smoothness([episodes_a[s] for s in seeds], [episodes_b[s] for s in seeds]),
     }
+
+
+def row_timing(row: Mapping[str, Any]) -> str:
+    """How a report's row timed inference (``virtual``, ``measured`` or ``real``); an older row is virtual."""
+    return str(row.get("timing") or "virtual")
+
+
+def timing_problem(a: Mapping[str, Any], b: Mapping[str, Any], names: tuple[str, str] = ("A", "B")) -> str | None:
+    """Why rows A and B cannot pair for how they timed inference (one line), or ``None`` when they agree.
+
+    A measured row's outcomes depend on the machine it ran on; a virtual row's on the seeds alone.
+    """
+    timing_a, timing_b = row_timing(a), row_timing(b)
+    if timing_a == timing_b:
+        return None
+    return (
+        f"{names[0]}'s row ran with {timing_a} latency and {names[1]}'s with {timing_b}; paired rows must agree "
+        "(a measured row's outcomes depend on the machine, a virtual row's on the seeds)"
+    )
 
 
 def paired_steps(a: Sequence[int | None], b: Sequence[int | None]) -> dict[str, Any]:

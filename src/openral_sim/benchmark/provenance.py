@@ -6,6 +6,7 @@ import os
 import platform
 import subprocess
 import sys
+from collections.abc import Sequence
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -38,16 +39,24 @@ def provenance(
     requested: int,
     served: dict[str, Any] | None = None,
     baseline: Path | None = None,
+    measured_rows: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Where and how the suite ran: packages, machine, revision, the suite's hash, processes started and asked for.
 
     ``served`` (how rows' policies were served) and ``baseline`` (the report speed-ups are measured
-    against) are named only when the run had them.
+    against) are named only when the run had them; so is ``real_time``, for ``measured_rows`` (the
+    labels of rows whose inference took its real time: ``measured`` or ``real`` timing): their
+    outcomes depend on this machine, its load and the workers sharing it, which it names.
     """
     described: dict[str, Any] = {
         "packages": package_versions(PROVENANCE_PACKAGES),
         "python": sys.version.split()[0],
-        "machine": {"host": platform.node(), "system": platform.platform(), "cpus": os.cpu_count()},
+        "machine": {
+            "host": platform.node(),
+            "system": platform.platform(),
+            "cpu_model": cpu_model(),
+            "cpus": os.cpu_count(),
+        },
         "git_revision": git_revision(),
         "config_sha256": config_hash,
         "workers": workers,
@@ -58,7 +67,27 @@ def provenance(
         described["served"] = served
     if baseline is not None:
         described["baseline"] = str(baseline)
+    if measured_rows:
+        described["real_time"] = {
+            "rows": list(measured_rows),
+            "outcomes": "machine-dependent: the policy's real inference time, on this machine and its load",
+            "cpu_model": cpu_model(),
+            "cpus": os.cpu_count(),
+            "workers": workers,
+        }
     return described
+
+
+def cpu_model() -> str:
+    """The processor's model name (Linux's ``/proc/cpuinfo``), else what ``platform`` knows of it."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as info:
+            for line in info:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def package_versions(names: tuple[str, ...]) -> dict[str, str | None]:

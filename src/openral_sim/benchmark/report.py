@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from openral_sim.benchmark.suite_run import SuiteOutcome
+from openral_sim.evaluation import real_time_note
 
 
 def suite_document(suite: str, outcome: SuiteOutcome, *, wall_s: float, provenance: dict[str, Any]) -> dict[str, Any]:
@@ -27,7 +28,7 @@ def table_line(row: dict[str, Any]) -> str:
     low, high = row["pc_success_ci95"]
     return (
         f"{row['label']}: {row['pc_success']:.1f} % [{low:.1f}, {high:.1f}] over {row['n_episodes']} episodes "
-        f"in {row['wall_s']:.1f} s ({row['episodes_per_s']:.2f} episodes/s)"
+        f"in {row['wall_s']:.1f} s ({row['episodes_per_s']:.2f} episodes/s){real_time_note(row)}"
     )
 
 

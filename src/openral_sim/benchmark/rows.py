@@ -46,6 +46,7 @@ class SuiteRow(NamedTuple):
             "skill": self.run.skill,
             "skill_params": self.run.skill_params,
             "seeds": self.seeds,
+            "timing": self.scene.timing,
         }
 
 
@@ -57,6 +58,11 @@ def with_overrides(scene: SimEnvironment, n_episodes: int | None, seed: int | No
     if seed is not None:
         update["seed"] = seed
     return scene.model_copy(update=update) if update else scene
+
+
+def in_real_time(rows: Sequence[SuiteRow]) -> list[SuiteRow]:
+    """Every row with ``virtual_latency: measured``: paced by the wall clock, the policy on its worker."""
+    return [row._replace(scene=row.scene.model_copy(update={"virtual_latency": "measured"})) for row in rows]
 
 
 def load_rows(suite: BenchmarkSuite, config_path: Path, hasher: Hasher, *, render_all: bool) -> list[SuiteRow]:

@@ -70,6 +70,7 @@ def test_the_bootstrap_interval_is_seeded_and_brackets_the_mean() -> None:
         ({"env_id": "place"}, "env_id 'pick' and B's 'place'"),
         ({"seeds": [0, 99]}, "seeds"),
         ({"scene": "push"}, "scene 'pick' is in A's report and not in B's"),
+        ({"timing": "measured"}, "A's row ran with virtual latency and B's with measured; .* depend on the machine"),
     ],
 )
 def test_rows_that_cannot_be_paired_are_refused_naming_the_difference(change: dict[str, Any], words: str) -> None:
@@ -77,6 +78,15 @@ def test_rows_that_cannot_be_paired_are_refused_naming_the_difference(change: di
     b = report("b", [(True, 5)] * 4, **change)
     with pytest.raises(ROSConfigError, match=words):
         compare_reports(a, b)
+
+
+def test_a_row_that_does_not_name_its_timing_pairs_as_virtual() -> None:
+    a = report("a", [(True, 5)] * 4)  # a report written before rows named their timing
+    b = report("b", [(True, 5)] * 4, timing="virtual")
+    (row,) = compare_reports(a, b)["rows"]
+    assert row["n_pairs"] == 4
+    with pytest.raises(ROSConfigError, match="A's row ran with measured latency and B's with virtual"):
+        compare_reports(report("a", [(True, 5)] * 4, timing="measured"), b)
 
 
 def test_seeds_in_one_report_only_are_refused() -> None:

@@ -16,6 +16,18 @@ def test_provenance_names_the_processes_started_and_asked_for_and_nothing_the_ru
     assert described["packages"]["numpy"] == metadata.version("numpy")
     assert "served" not in described
     assert "baseline" not in described
+    assert "real_time" not in described
+    assert described["machine"]["cpu_model"]
+
+
+def test_provenance_names_the_rows_whose_outcomes_depend_on_the_machine() -> None:
+    described = provenance("ab" * 32, 2, None, requested=2, measured_rows=["pick/act"])
+    live = described["real_time"]
+    assert live["rows"] == ["pick/act"]
+    assert live["workers"] == 2
+    assert live["cpus"] == described["machine"]["cpus"]
+    assert live["cpu_model"] == described["machine"]["cpu_model"]
+    assert "machine-dependent" in live["outcomes"]
 
 
 def test_provenance_names_the_serving_and_the_baseline_last_when_given() -> None:

@@ -70,6 +70,7 @@ def test_a_rows_head_names_its_first_and_last_seed() -> None:
         "skill": "zero",
         "skill_params": {"a": 1},
         "seeds": [10, 13],
+        "timing": "virtual",
     }
 
 
