@@ -330,8 +330,12 @@ class Evaluator:
         return self._pool
 
     def _ray_options(self) -> dict[str, Any]:
-        """A Ray task's options: its worker process starts with the thread limits (Ray's own ``OMP_NUM_THREADS``
-        is set only as a task starts, after the worker has loaded numpy)."""
+        """A Ray task's options: its worker process starts with the thread limits in its environment.
+
+        Ray's own default sets ``OMP_NUM_THREADS`` alone (to the task's CPUs), and only as a task
+        starts where it is unset: not the variables other libraries read, nor before the worker
+        has loaded what it loaded.
+        """
         environment = worker_environment(self.threads)
         return {"runtime_env": {"env_vars": environment}} if environment else {}
 
