@@ -226,6 +226,14 @@ def benchmark() -> None:
 )
 @click.option("--ray", "ray_address", default=None, help="Run on Ray: 'auto', 'local' or a cluster address.")
 @click.option(
+    "--threads-per-worker",
+    type=click.IntRange(min=0, max=1024),
+    default=None,
+    help="Threads each numeric library (BLAS, OpenMP, PyTorch, ONNX Runtime) may use in each worker process "
+    "[default: 1 with several workers or Ray; --workers 1 runs here, unlimited]. A count with --workers 1 runs the "
+    "episodes in one worker process; 0: no limit. A skill parameter that names a count wins.",
+)
+@click.option(
     "--min-success",
     type=click.FloatRange(0, 100),
     default=None,
@@ -281,6 +289,7 @@ def benchmark_run(
     config_path: Path,
     workers: int,
     ray_address: str | None,
+    threads_per_worker: int | None,
     min_success: float | None,
     out: Path | None,
     html_path: Path | None,
@@ -307,13 +316,19 @@ def benchmark_run(
     started = time.perf_counter()
     # The simulation stack loads for the simulation commands only.
     from openral_sim import report_files  # noqa: PLC0415
-    from openral_sim.benchmark.baseline import check_baseline, compare_with, load_baseline  # noqa: PLC0415
+    from openral_sim.benchmark.baseline import (  # noqa: PLC0415
+        check_baseline,
+        compare_with,
+        load_baseline,
+        threads_note,
+    )
     from openral_sim.benchmark.compare import comparison_lines  # noqa: PLC0415
     from openral_sim.benchmark.provenance import provenance  # noqa: PLC0415
     from openral_sim.benchmark.report import markdown_table, suite_document, table_line  # noqa: PLC0415
     from openral_sim.benchmark.rows import in_real_time, load_rows  # noqa: PLC0415
     from openral_sim.benchmark.suite_run import ServeOptions, run_suite, worker_processes  # noqa: PLC0415
     from openral_sim.evaluation import Evaluator  # noqa: PLC0415
+    from openral_sim.worker_environment import thread_report  # noqa: PLC0415
 
     code = EXIT_OK
     with exit_codes(bool(ctx.obj["debug"])):
@@ -337,7 +352,12 @@ def benchmark_run(
             if note is not None:
                 click.echo(note, err=True)
         serving = ServeOptions(max_batch=serve_max_batch, gpus=serve_gpus) if serve else None
-        with _stdout_to_stderr(as_json), Evaluator(workers=processes, ray_address=ray_address) as evaluator:
+        evaluator = Evaluator(workers=processes, ray_address=ray_address, threads_per_worker=threads_per_worker)
+        if baseline is not None and baseline.one_process:
+            note = threads_note(baseline, evaluator.threads)
+            if note is not None:
+                click.echo(note, err=True)
+        with _stdout_to_stderr(as_json), evaluator:
             outcome = run_suite(
                 rows,
                 evaluator,
@@ -349,6 +369,7 @@ def benchmark_run(
                 min_success=min_success,
                 on_row=None if as_json else lambda row: click.echo(table_line(row), err=True),
             )
+            worker_threads = None if outcome.error is not None else evaluator.in_worker(thread_report)
         document = suite_document(
             suite.name,
             outcome,
@@ -361,6 +382,8 @@ def benchmark_run(
                 served=None if serving is None else serving.described(evaluator.processes),
                 baseline=baseline_path,
                 measured_rows=[row.label for row in rows if row.scene.timing != "virtual"],
+                threads_per_worker=evaluator.threads,
+                worker_threads=worker_threads,
             ),
         )
         if compare and baseline is not None and outcome.error is None:

@@ -36,6 +36,7 @@ from openral_rskill.base import ChunkingSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
 from openral_rskill.lerobot.checkpoint import Checkpoint
 from openral_rskill.lerobot.observation import ObservationMap
+from openral_rskill.worker_threads import threads_per_worker
 
 SKILL_ID = "lerobot_policy"
 MAX_BATCH = 256
@@ -66,7 +67,12 @@ class LeRobotPolicyParams(BaseModel):
         default="absolute", description="absolute targets, or offsets from the state measured with the observation."
     )
     warmup_inferences: int = Field(default=3, ge=0, le=100, description="Inferences run at configure.")
-    threads: int | None = Field(default=None, ge=1, le=256, description="PyTorch CPU threads (default: its own).")
+    threads: int | None = Field(
+        default=None,
+        ge=1,
+        le=256,
+        description="PyTorch CPU threads (default: an evaluation worker's allowance, else PyTorch's own).",
+    )
 
 
 class LeRobotPolicySkill(ChunkingSkillBase):
@@ -145,7 +151,8 @@ class LeRobotPolicySkill(ChunkingSkillBase):
         # Loaded only here: torch and lerobot (the 'lerobot' extra) take seconds to import.
         from openral_rskill.lerobot.runtime import LoadedPolicy  # noqa: PLC0415
 
-        policy = LoadedPolicy(self.checkpoint, device=self.params.device, threads=self.params.threads)
+        threads = self.params.threads if self.params.threads is not None else threads_per_worker()
+        policy = LoadedPolicy(self.checkpoint, device=self.params.device, threads=threads)
         self._check_units(policy.state_bound())
         self._policy = policy
         blank = self.inputs.blank()

@@ -6,7 +6,8 @@ values), optional normalisation (or none, when it is folded into the graph), and
 rows are meant (the action representation, anchored by the chunk executor). The chunk size is
 read from the model's metadata (``chunk_size``) when it has it; the chunk goes to the chunk
 executor as the model's array (``step`` gives its first row). One warm-up inference runs at
-``configure``, and ONNX Runtime's intra-op threads are set (one by default: the tick's machine
+``configure``, and ONNX Runtime's intra-op threads are set: as the parameters say, else the
+evaluation worker's allowance (:mod:`openral_rskill.worker_threads`), else one (the tick's machine
 has other work).
 """
 
@@ -39,6 +40,7 @@ from openral_rskill.anchoring import (
 )
 from openral_rskill.base import ChunkingSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
+from openral_rskill.worker_threads import threads_per_worker
 
 try:
     import onnxruntime as ort
@@ -73,7 +75,11 @@ class OnnxPolicyParams(BaseModel):
     anchor_key: str | None = Field(default=None, description="delta_ee: the privileged position the rows move.")
     action_scale: float | None = Field(default=None, gt=0, description="delta_ee: metres per unit of action.")
     position_dims: list[int] = Field(default_factory=lambda: [0, 1, 2], description="delta_ee: the moving dims.")
-    intra_op_threads: int = Field(default=1, ge=0, description="ONNX Runtime intra-op threads (0: its default).")
+    intra_op_threads: int | None = Field(
+        default=None,
+        ge=0,
+        description="ONNX Runtime intra-op threads (0: its default; unset: an evaluation worker's allowance, else 1).",
+    )
     dt_s: float | None = Field(default=None, gt=0, description="The policy's step; must match the tick period.")
 
 
@@ -148,9 +154,16 @@ class OnnxPolicySkill(ChunkingSkillBase):
             return UnanchoredRows()  # no position to anchor at: the executor starts each chunk stale, and warns
         return AbsoluteAnchor()
 
+    @property
+    def intra_op_threads(self) -> int:
+        """ONNX Runtime's intra-op threads: the parameter's, else the evaluation worker's allowance, else one."""
+        if self.params.intra_op_threads is not None:
+            return self.params.intra_op_threads
+        return threads_per_worker() or 1
+
     def _on_configure(self) -> None:
         options = ort.SessionOptions()
-        options.intra_op_num_threads = self.params.intra_op_threads
+        options.intra_op_num_threads = self.intra_op_threads
         options.inter_op_num_threads = 1
         try:
             self._session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])

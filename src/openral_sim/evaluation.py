@@ -8,6 +8,10 @@ unit of a scene builds the environment and the skill, the next ones only reset t
 can be small (one episode each when several processes share the work) and pulled by whichever
 process is free, which keeps every process busy until the end, and start-up is paid once per
 process rather than once per unit. Ray is imported only when asked for.
+
+Every worker process (and Ray task) starts with one thread per numeric library unless asked
+otherwise (:mod:`openral_sim.worker_environment`): processes that each spread their math over
+every core fight over the cores, and that, not the scheduling, is what caps scaling.
 """
 
 from __future__ import annotations
@@ -18,12 +22,12 @@ import math
 import multiprocessing
 import multiprocessing.util
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import structlog
@@ -32,10 +36,13 @@ from openral_core import EpisodeResult, ObserverConfig, RealTimeStats, ROSDepend
 from openral_sim import smoothness
 from openral_sim.build import EpisodeBatch, SimCache, SkillFailed
 from openral_sim.time_to_success import time_to_success
+from openral_sim.worker_environment import spawning_with, worker_environment
 
 _log = structlog.get_logger(__name__)
 
 WILSON_Z_95 = 1.959963984540054
+
+T = TypeVar("T")
 
 
 def wilson_interval(successes: int, n: int, z: float = WILSON_Z_95) -> tuple[float, float]:
@@ -148,6 +155,11 @@ def _run_unit(unit: EpisodeUnit, cache: SimCache) -> EpisodeBatch:
         return exc.batch
 
 
+def _call(function: Callable[[], T]) -> T:
+    """``function()``: what a Ray task runs for :meth:`Evaluator.in_worker`."""
+    return function()
+
+
 def _warm_worker(unit: EpisodeUnit, ready: Any) -> None:
     """A worker's initializer: build ``unit``'s environment and skill as the process starts, then say so."""
     try:
@@ -187,11 +199,24 @@ class Evaluator:
             one here), or a cluster address (``ray://host:10001``). A Ray already initialised in
             this process is used as it is. A Ray worker process keeps what it built as a local
             worker does.
+        threads_per_worker: The threads each numeric library (BLAS, OpenMP, PyTorch, ONNX
+            Runtime) may use in each worker process or Ray task; a skill whose parameters name
+            a count keeps it. ``None``: one in worker processes and on Ray, and one process
+            (``workers=1``) runs the episodes here as it is. A count with ``workers=1`` runs them
+            in one worker process, where the count applies. ``0``: no limit anywhere.
+
+    Raises:
+        ValueError: ``threads_per_worker`` is negative.
     """
 
-    def __init__(self, *, workers: int = 1, ray_address: str | None = None) -> None:
+    def __init__(
+        self, *, workers: int = 1, ray_address: str | None = None, threads_per_worker: int | None = None
+    ) -> None:
+        if threads_per_worker is not None and threads_per_worker < 0:
+            raise ValueError(f"threads_per_worker must be 0 or more, not {threads_per_worker}")
         self.workers = workers
         self.ray_address = ray_address
+        self.threads_per_worker = threads_per_worker
         self._here = SimCache()
         self._pool: ProcessPoolExecutor | None = None
         self._warm_ready: Any = None
@@ -202,6 +227,18 @@ class Evaluator:
     def processes(self) -> int | None:
         """How many processes share the units: ``workers``, or ``None`` on Ray (the cluster decides)."""
         return None if self.ray_address is not None else self.workers
+
+    @property
+    def threads(self) -> int | None:
+        """The threads each numeric library may use where the episodes run; ``None``: not limited."""
+        if self.threads_per_worker is not None:
+            return self.threads_per_worker or None
+        return None if self.ray_address is None and self.workers <= 1 else 1
+
+    @property
+    def _spawns(self) -> bool:
+        """Whether the episodes run in worker processes on this machine (not here, not on Ray)."""
+        return self.ray_address is None and (self.workers > 1 or self.threads is not None)
 
     def schedule(
         self, scene: SimEnvironment, skill_id: str, skill_params: Mapping[str, Any], n_episodes: int
@@ -224,7 +261,7 @@ class Evaluator:
         """
         if self.processes is None:
             return
-        if self.workers <= 1:
+        if not self._spawns:
             _warm(self._here, unit)
         elif self._pool is None:
             context = multiprocessing.get_context("spawn")
@@ -236,7 +273,8 @@ class Evaluator:
                 initargs=(unit, self._warm_ready),
             )
             # A worker process starts at a submit that finds none idle: one submit each starts them all.
-            self._warming = [self._pool.submit(os.getpid) for _ in range(self.workers)]
+            with spawning_with(worker_environment(self.threads)):
+                self._warming = [self._pool.submit(os.getpid) for _ in range(self.workers)]
 
     def wait_warm(self) -> None:
         """Wait until every worker started by :meth:`warm_up` has built what it was given (or failed to)."""
@@ -256,11 +294,10 @@ class Evaluator:
         """
         if self.ray_address is not None:
             batches = self._run_on_ray(units)
-        elif self.workers > 1 and len(units) > 1:
-            if self._pool is None:
-                context = multiprocessing.get_context("spawn")
-                self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context)
-            batches = list(self._pool.map(run_unit, units))
+        elif self._spawns:
+            with spawning_with(worker_environment(self.threads)):  # a submit may start a worker
+                results = self._worker_pool().map(run_unit, units)
+            batches = list(results)
         else:
             batches = []
             for unit in units:
@@ -270,6 +307,38 @@ class Evaluator:
         merged = merge_batches(batches)
         merged.raise_for_failure()
         return merged
+
+    def in_worker(self, function: Callable[[], T]) -> T:
+        """``function()`` where this evaluator's episodes run: a worker process, a Ray task like theirs, or here.
+
+        ``function`` must pickle (a module-level function, or a :func:`functools.partial` of one).
+        """
+        if self.ray_address is not None:
+            ray, _ = self._ray()
+            task = ray.remote(_call).options(**self._ray_options())
+            return ray.get(task.remote(function))  # type: ignore[no-any-return]
+        if self._spawns:
+            with spawning_with(worker_environment(self.threads)):
+                future = self._worker_pool().submit(function)
+            return future.result()
+        return function()
+
+    def _worker_pool(self) -> ProcessPoolExecutor:
+        """The worker processes (started by :meth:`warm_up`, else now, without a warm-up)."""
+        if self._pool is None:
+            context = multiprocessing.get_context("spawn")
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context)
+        return self._pool
+
+    def _ray_options(self) -> dict[str, Any]:
+        """A Ray task's options: its worker process starts with the thread limits in its environment.
+
+        Ray's own default sets ``OMP_NUM_THREADS`` alone (to the task's CPUs), and only as a task
+        starts where it is unset: not the variables other libraries read, nor before the worker
+        has loaded what it loaded.
+        """
+        environment = worker_environment(self.threads)
+        return {"runtime_env": {"env_vars": environment}} if environment else {}
 
     def close(self) -> None:
         """Stop the worker processes (each closes what it built) and close what was built here. Idempotent."""
@@ -290,7 +359,8 @@ class Evaluator:
 
     def _run_on_ray(self, units: Sequence[EpisodeUnit]) -> list[EpisodeBatch]:
         ray, remote = self._ray()
-        return list(ray.get([remote.remote(unit) for unit in units]))
+        task = remote.options(**self._ray_options())
+        return list(ray.get([task.remote(unit) for unit in units]))
 
     def ray(self) -> Any:
         """The ``ray`` module, initialised at this evaluator's address (for what runs beside the tasks)."""
@@ -315,13 +385,19 @@ class Evaluator:
         return self._ray_run  # type: ignore[no-any-return]
 
 
-def run_units(units: Sequence[EpisodeUnit], *, workers: int = 1, ray_address: str | None = None) -> EpisodeBatch:
+def run_units(
+    units: Sequence[EpisodeUnit],
+    *,
+    workers: int = 1,
+    ray_address: str | None = None,
+    threads_per_worker: int | None = None,
+) -> EpisodeBatch:
     """Run every unit with a one-off :class:`Evaluator` (its worker processes end with the call).
 
     Raises:
         SkillFailed: The skill kept failing in some unit (every unit's episodes are in its ``batch``).
     """
-    with Evaluator(workers=workers, ray_address=ray_address) as evaluator:
+    with Evaluator(workers=workers, ray_address=ray_address, threads_per_worker=threads_per_worker) as evaluator:
         return evaluator.run(units)
 
 

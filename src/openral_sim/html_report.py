@@ -79,7 +79,8 @@ def render(document: Document) -> str:
         _overview(document, results, completed),
         '<section id="results">',
         "<h2>Results</h2>",
-        f'<div class="wide">{_results_table(results)}</div>',
+        f'<div class="wide">{_results_table(results, (document.get("provenance") or {}).get("workers"))}</div>',
+        f"<p>{_EFFICIENCY_NOTE}</p>",
         "</section>",
         '<section id="smoothness">',
         "<h2>Smoothness</h2>",
@@ -119,7 +120,14 @@ def _overview(document: Document, results: Sequence[Mapping[str, Any]], complete
     return "\n".join(paragraphs)
 
 
-def _results_table(results: Sequence[Mapping[str, Any]]) -> str:
+_EFFICIENCY_NOTE = (
+    "Efficiency: a row's episodes per second divided by the workers and by the episodes per second one worker "
+    "reached on the same episodes, measured by the <code>--baseline</code> run (<code>--workers 1</code>); "
+    "1.00 is perfect scaling. Without such a baseline it is not known and reads —."
+)
+
+
+def _results_table(results: Sequence[Mapping[str, Any]], workers: int | None) -> str:
     head = (
         "row",
         "status",
@@ -133,6 +141,7 @@ def _results_table(results: Sequence[Mapping[str, Any]]) -> str:
         "tick ms (p50 / p99)",
         "inference ms (p50 / p99)",
         "episodes/s",
+        "efficiency (speed-up)",
         "note",
     )
     lines = ["<table>", "<thead><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr></thead>", "<tbody>"]
@@ -152,6 +161,7 @@ def _results_table(results: Sequence[Mapping[str, Any]]) -> str:
             ("tick-ms", _pair(row.get("tick_ms")), True),
             ("inference-ms", _pair(row.get("inference_ms")), True),
             ("episodes-per-s", _number(row.get("episodes_per_s"), ".2f"), True),
+            ("efficiency", _efficiency(row, workers), True),
             ("note", _e(row.get("error", "")), False),
         ]
         tds = "".join(f'<td class="{name}{_NUMBER if numeric else ""}">{value}</td>' for name, value, numeric in cells)
@@ -282,6 +292,13 @@ def _e(value: Any) -> str:
 
 def _number(value: Any, spec: str) -> str:
     return "—" if value is None else format(float(value), spec)
+
+
+def _efficiency(row: Mapping[str, Any], workers: int | None) -> str:
+    """``0.93 (1.86× on 2 workers)``: the row's efficiency and speed-up against the one-worker baseline."""
+    if row.get("efficiency") is None or row.get("speedup") is None:
+        return "—"
+    return f"{_number(row['efficiency'], '.2f')} ({_number(row['speedup'], '.2f')}× on {_e(workers)} workers)"
 
 
 def _interval(bounds: Sequence[float]) -> str:

@@ -243,7 +243,13 @@ def test_benchmark_run_reports_episodes_per_second_and_efficiency_against_a_one_
     assert row["efficiency"] == pytest.approx(row["speedup"] / 2)
     assert 1 <= row["env_builds"] <= 2  # at most once per worker
     assert document["startup_s"] + row["wall_s"] <= document["wall_s"]
-    assert f"{row['episodes_per_s']:.2f} | {row['efficiency']:.2f} ({row['speedup']:.2f}× on 2) |" in result.output
+    efficiency = f"{row['efficiency']:.2f} ({row['speedup']:.2f}× on 2 workers)"
+    assert f"{row['episodes_per_s']:.2f} | {efficiency} |" in result.output
+    # The baseline ran here, unlimited; the workers ran with one thread per library, and the report says both.
+    assert json.loads(one.read_text())["provenance"]["threads_per_worker"] is None
+    assert document["provenance"]["threads_per_worker"] == 1
+    assert document["provenance"]["worker_threads"]["variables"]["OMP_NUM_THREADS"] == "1"
+    assert "--baseline: its run allowed unlimited threads per library, this one 1 thread(s)" in result.output
 
     # A report of several workers is no speed reference; the same suite on the same seeds pairs with it.
     compared = CliRunner().invoke(cli, ["benchmark", "run", "--config", str(suite), "--baseline", str(two), "--json"])

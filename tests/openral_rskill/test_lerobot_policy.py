@@ -31,6 +31,7 @@ from openral_core import FrameEncoding, JointState, ROSConfigError, ROSSkillErro
 from openral_hal.manifests import load_robot_manifest  # noqa: E402
 from openral_rskill.chunks import ChunkRequest  # noqa: E402
 from openral_rskill.lerobot_policy import LeRobotPolicySkill  # noqa: E402
+from openral_rskill.worker_threads import THREADS_PER_WORKER_VARIABLE  # noqa: E402
 
 SO101 = load_robot_manifest("so101_follower")
 HEIGHT, WIDTH = 48, 64
@@ -254,6 +255,19 @@ def test_degrees_are_converted_both_ways(checkpoints: dict[str, Path], skill_of:
     back = np.radians(expected)
     back[:, -1] = expected[:, -1] / 100 * (jaw.upper - jaw.lower) + jaw.lower
     assert np.abs(chunk - back).max() <= 1e-4
+
+
+@pytest.mark.parametrize(("asked", "expected"), [(None, 3), (2, 2)])
+def test_pytorchs_threads_are_the_parameters_else_the_evaluation_workers_allowance(
+    checkpoints: dict[str, Path], skill_of: Any, monkeypatch: pytest.MonkeyPatch, asked: int | None, expected: int
+) -> None:
+    monkeypatch.setenv(THREADS_PER_WORKER_VARIABLE, "3")  # as in an evaluation's worker process
+    before = torch.get_num_threads()
+    try:
+        skill_of(checkpoints["act"], **({} if asked is None else {"threads": asked}))
+        assert torch.get_num_threads() == expected
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_units_the_training_statistics_contradict_are_refused_at_configure(checkpoints: dict[str, Path]) -> None:

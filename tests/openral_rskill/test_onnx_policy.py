@@ -17,6 +17,7 @@ from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 from openral_rskill.anchoring import EndEffectorDeltaAnchor, UnanchoredRows  # noqa: E402
 from openral_rskill.chunks import ChunkRequest  # noqa: E402
 from openral_rskill.onnx_policy import OnnxPolicySkill  # noqa: E402
+from openral_rskill.worker_threads import THREADS_PER_WORKER_VARIABLE  # noqa: E402
 
 ROBOT = RobotManifest(
     robot_id="arm",
@@ -181,3 +182,23 @@ def test_a_fixed_batch_model_answers_a_batch_one_request_at_a_time(tmp_path: Pat
     assert skill.batch_capacity() == 1
     chunks = skill.step_chunks([ChunkRequest(world) for world in _worlds(3)])
     assert [chunk[0, 1] for chunk in chunks] == pytest.approx([0.0, -0.4, -0.8])
+
+
+@pytest.mark.parametrize(
+    ("allowance", "asked", "expected"),
+    [(None, None, 1), ("3", None, 3), ("3", 2, 2), (None, 0, 0)],
+)
+def test_the_sessions_threads_are_the_parameters_else_the_evaluation_workers_allowance_else_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, allowance: str | None, asked: int | None, expected: int
+) -> None:
+    if allowance is None:
+        monkeypatch.delenv(THREADS_PER_WORKER_VARIABLE, raising=False)
+    else:
+        monkeypatch.setenv(THREADS_PER_WORKER_VARIABLE, allowance)
+    params: dict[str, object] = {"model": str(tiny_model(tmp_path / "m.onnx")), "observation": ["joint_state"]}
+    if asked is not None:
+        params["intra_op_threads"] = asked
+    skill = OnnxPolicySkill.from_config(params, robot=ROBOT, rate_hz=30)
+    skill.configure()
+    options = skill._session.get_session_options()
+    assert (options.intra_op_num_threads, options.inter_op_num_threads) == (expected, 1)

@@ -180,7 +180,8 @@ RAY_RUN = """
 import json, ray
 from openral_core import ObserverConfig, SimEnvironment
 from openral_sim.build import SkillFailed
-from openral_sim.evaluation import run_units, split_episodes, with_observers
+from openral_sim.evaluation import Evaluator, run_units, split_episodes, with_observers
+from openral_sim.worker_environment import thread_report
 scene = SimEnvironment.model_validate_json({scene!r})
 video = ObserverConfig(id="episode_video", params={{"folder": {videos!r}, "episodes": 2, "prefix": "reach"}})
 ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
@@ -192,15 +193,16 @@ try:
         failure = None
     except SkillFailed as exc:
         failure = [str(exc), [e.ended_by for e in exc.batch.episodes]]
+    threads = Evaluator(ray_address="local").in_worker(thread_report)["variables"]
 finally:
     ray.shutdown()
-print(json.dumps([[e.outcome() for e in batch.episodes], failure, builds]))
+print(json.dumps([[e.outcome() for e in batch.episodes], failure, builds, threads]))
 """
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(600)  # a Ray cluster of its own starts first: tens of seconds on a busy machine
-def test_ray_gives_the_outcomes_of_one_process_films_and_reports_a_failing_skill(tmp_path) -> None:
+def test_ray_gives_the_outcomes_of_one_process_films_reports_a_failing_skill_and_limits_threads(tmp_path) -> None:
     if importlib.util.find_spec("ray") is None:  # not imported here: Ray installs process-wide handlers
         pytest.skip("needs the 'ray' extra")
     here = run_units(split_episodes(FILMED, "random", {}, 8, 1)).episodes
@@ -210,7 +212,7 @@ def test_ray_gives_the_outcomes_of_one_process_films_and_reports_a_failing_skill
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False, env=RAY_ENV
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    on_ray, failure, builds = json.loads(proc.stdout.strip().splitlines()[-1])
+    on_ray, failure, builds, threads = json.loads(proc.stdout.strip().splitlines()[-1])
     assert on_ray == [e.outcome() for e in here]
     assert sorted(v.name for v in tmp_path.iterdir()) == ["reach_episode0.mp4", "reach_episode1.mp4"]
     assert builds
@@ -220,6 +222,8 @@ def test_ray_gives_the_outcomes_of_one_process_films_and_reports_a_failing_skill
     message, ended_by = failure
     assert "grasp_pos" in message
     assert ended_by == ["faults"] * 4
+    # A Ray task's worker starts with one thread per library, as a worker process here does.
+    assert set(threads.values()) == {"1"}, threads
 
 
 def test_worker_processes_are_capped_by_the_units_and_the_cpus_this_process_may_use() -> None:

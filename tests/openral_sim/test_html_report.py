@@ -157,6 +157,17 @@ def test_the_page_plots_every_row_prints_the_json_numbers_and_its_provenance(tmp
         assert cells["label"] == row["label"]
         assert cells["jerk_rms"] == f"{jerk['mean']:.3g} / {jerk['p95']:.3g}"
         assert cells["ee_path_length_m"] == "— / —"  # the mock env reports no end effector
+    assert [cells["efficiency"] for cells in page.results] == ["—", "—"]  # no one-worker baseline to measure against
+
+    # Against a one-worker baseline: the efficiency with its speed-up and the workers it was reached on.
+    from openral_sim import html_report  # noqa: PLC0415 - as the command imports it
+
+    measured = json.loads(out.read_text())
+    measured["provenance"]["workers"] = 2
+    measured["results"][0].update(speedup=1.8, efficiency=0.9)
+    again = Page(html_report.render(measured))
+    assert [cells["efficiency"] for cells in again.results] == ["0.90 (1.80× on 2 workers)", "—"]
+    assert "1.00 is perfect scaling" in html_report.render(measured)
 
     # Every provenance value, and what each row ran with its seeds.
     provenance = _leaves(document["provenance"])

@@ -50,6 +50,25 @@ def load_baseline(path: Path) -> Baseline:
     return Baseline(document, bool(one_process))
 
 
+def threads_note(baseline: Baseline, threads: int | None) -> str | None:
+    """The line that says a one-process baseline ran with another thread limit than this run, else ``None``.
+
+    Its speed-ups still hold as measured, but they then measure the thread limit as well as the
+    workers. A report that does not record the limit ran one process unlimited, as one process did then.
+    """
+    before = baseline.document["provenance"].get("threads_per_worker")
+    if before == threads:
+        return None
+    return (
+        f"{BASELINE_OPTION}: its run allowed {_threads(before)} per library, this one {_threads(threads)}: "
+        "speed-ups and efficiency measure both the workers and that difference"
+    )
+
+
+def _threads(threads: int | None) -> str:
+    return "unlimited threads" if threads is None else f"{threads} thread(s)"
+
+
 def references(baseline: Sequence[dict[str, Any]], rows: Sequence[SuiteRow]) -> dict[str, float]:
     """Each row's episodes per second in the baseline, by label: same label, same episodes (seeds).
 

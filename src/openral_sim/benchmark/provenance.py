@@ -40,8 +40,14 @@ def provenance(
     served: dict[str, Any] | None = None,
     baseline: Path | None = None,
     measured_rows: Sequence[str] = (),
+    threads_per_worker: int | None = None,
+    worker_threads: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Where and how the suite ran: packages, machine, revision, the suite's hash, processes started and asked for.
+
+    ``threads_per_worker`` is the threads each numeric library was allowed where the episodes ran
+    (``None``: not limited), and ``worker_threads`` what a worker's libraries were told there
+    (:func:`~openral_sim.worker_environment.thread_report`), when it could be asked.
 
     ``served`` (how rows' policies were served) and ``baseline`` (the report speed-ups are measured
     against) are named only when the run had them; so is ``real_time``, for ``measured_rows`` (the
@@ -62,6 +68,8 @@ def provenance(
         "workers": workers,
         "workers_requested": requested,
         "ray": ray_address,
+        "threads_per_worker": threads_per_worker,
+        "worker_threads": worker_threads,
     }
     if served is not None:
         described["served"] = served

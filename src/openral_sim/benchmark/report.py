@@ -35,11 +35,12 @@ def table_line(row: dict[str, Any]) -> str:
 def markdown_table(rows: Sequence[dict[str, Any]], workers: int | None) -> str:
     """The rows as a Markdown table; efficiency reads ``—`` without a baseline to measure it against.
 
-    ``workers`` is the processes the speed-up was reached on (``None`` on Ray).
+    ``workers`` is the processes the speed-up was reached on (``None`` on Ray). Efficiency is the
+    speed-up over the one-worker baseline divided by them: 1.00 is perfect scaling.
     """
     lines = [
         "| scene / skill | episodes | success | 95 % CI | steps to success (p50) | tick p50 / p99 ms "
-        "| episodes/s | efficiency |",
+        "| episodes/s | efficiency (speed-up) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
@@ -51,7 +52,7 @@ def markdown_table(rows: Sequence[dict[str, Any]], workers: int | None) -> str:
         tick = row["tick_ms"]
         efficiency = "—"
         if row["efficiency"] is not None:
-            efficiency = f"{row['efficiency']:.2f} ({row['speedup']:.2f}× on {workers})"
+            efficiency = f"{row['efficiency']:.2f} ({row['speedup']:.2f}× on {workers} workers)"
         lines.append(
             f"| {row['label']} | {row['n_episodes']} | {row['pc_success']:.1f} % | {low:.1f}–{high:.1f} % | "
             f"{'—' if steps is None else f'{steps:.0f}'} | {tick['p50']:.2f} / {tick['p99']:.2f} | "

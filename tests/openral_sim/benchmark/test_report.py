@@ -36,7 +36,7 @@ def test_the_table_has_a_line_per_row_and_a_failed_row_has_no_numbers() -> None:
 def test_the_table_shows_efficiency_with_its_speedup_and_workers_and_no_steps_without_a_success() -> None:
     row = _completed(speedup=1.8, efficiency=0.9, steps_to_success={"mean": None, "p50": None})
     line = markdown_table([row], workers=2).splitlines()[-1]
-    assert line.endswith("| — | 1.23 / 5.68 | 2.48 | 0.90 (1.80× on 2) |")
+    assert line.endswith("| — | 1.23 / 5.68 | 2.48 | 0.90 (1.80× on 2 workers) |")
 
 
 def test_a_progress_line_says_success_interval_episodes_and_speed() -> None:
