@@ -337,7 +337,13 @@ class InstalledPackages:
         self._modules: list[str] = []
 
     def __call__(
-        self, name: str, source: str, *, files: Mapping[str, str] | None = None, importable: bool = False
+        self,
+        name: str,
+        source: str,
+        *,
+        files: Mapping[str, str] | None = None,
+        importable: bool = False,
+        license_id: str | None = None,
     ) -> Path:
         """Install distribution ``name`` (its import name too, as LeRobot imports it) into :attr:`site`; returns it.
 
@@ -346,6 +352,7 @@ class InstalledPackages:
             source: The package's ``__init__.py``.
             files: More modules of the package, file name (``modeling_x.py``) to source.
             importable: Also put :attr:`site` on this process's ``sys.path`` until the test ends.
+            license_id: The ``License-Expression`` its metadata declares (``None``: none, as many plugins).
         """
         package = self.site / name
         package.mkdir()
@@ -354,7 +361,10 @@ class InstalledPackages:
             (package / file_name).write_text(text, encoding="utf-8")
         info = self.site / f"{name}-0.1.dist-info"
         info.mkdir()
-        (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.1\n", encoding="utf-8")
+        declared = "" if license_id is None else f"License-Expression: {license_id}\n"
+        (info / "METADATA").write_text(
+            f"Metadata-Version: 2.4\nName: {name}\nVersion: 0.1\n{declared}", encoding="utf-8"
+        )
         (info / "INSTALLER").write_text("pip\n", encoding="utf-8")
         records = [f"{name}/{file_name},," for file_name in written]
         records += [f"{info.name}/{entry},," for entry in ("METADATA", "INSTALLER", "RECORD")]

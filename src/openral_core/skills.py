@@ -38,6 +38,13 @@ class RSkillInfo(BaseModel):
         description="Observations one inference reads, the current one included (a Diffusion policy's n_obs_steps); "
         "the chunk executor keeps the earlier ones by tick.",
     )
+    past_actions: int = Field(
+        default=0,
+        ge=0,
+        le=1024,
+        description="Commands actually sent (after the safety check) before the observation's tick that one "
+        "inference reads (a prefix-conditioned policy's executed actions); the chunk executor keeps them by tick.",
+    )
     observation: list[str] = Field(
         default_factory=list,
         description="What the skill reads of the world state (joint_state, images.<sensor>, privileged.<name>, "

@@ -9,6 +9,9 @@ knows two things by tick that a policy may use:
   the observation's until the chunk can arrive (its recent p95 latency, or a simulation's virtual
   delay). Prefix-conditioned policies (real-time chunking) keep their new chunk continuous with
   them; the rows of the new chunk for those ticks are skipped when it arrives.
+* **Past**: the commands actually sent before the observation's tick, after the safety check (a
+  clamp included), for a policy that reads executed actions. The skill says how many in
+  ``RSkillInfo.past_actions`` (none by default: nothing is kept).
 
 A sampling policy (Diffusion, flow matching) draws a request's noise from :meth:`ChunkRequest.draw_seed`:
 the episode's seed mixed with the observation's tick. A chunk is then a function of its request,
@@ -44,6 +47,9 @@ class ChunkRequest:
         inference_delay: Ticks expected to pass before the chunk can be used (the executor's
             recent p95 inference latency, or a simulation's exact virtual delay); rows ``0 ..
             inference_delay - 1`` of the new chunk are for ticks already gone by then.
+        past: ``(n, dims)`` the last commands sent before ``obs_tick``, oldest first (at most
+            ``past_actions``; fewer at the start of an episode, none after a reset).
+        past_ticks: The tick each row of ``past`` was sent on (a withheld tick leaves a gap).
         seed: The episode's seed when the caller knows it (a policy server: the asking robot's);
             ``None``: the skill's own (:attr:`~openral_rskill.base.RSkillBase.episode_seed`).
     """
@@ -53,6 +59,8 @@ class ChunkRequest:
     history: tuple[WorldState, ...] = ()
     prefix: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     inference_delay: int = 0
+    past: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    past_ticks: tuple[int, ...] = ()
     seed: int | None = None
 
     def draw_seed(self, episode_seed: int | None) -> int | None:

@@ -22,6 +22,9 @@ keeps the tick thread from ever waiting on it:
 * **A source that knows it is down** (``available`` returns ``False``: a remote policy's server
   is gone) is not asked; its buffered rows are dropped and the fallback decides from that very
   tick, without waiting out the starvation allowance.
+* **Past commands**: for a policy that reads executed actions (``past_actions``), the runner
+  hands back each command it actually sent, after the safety check (:meth:`ChunkedExecutor.sent`);
+  the last ones are kept by tick (bounded) and each request carries those before its tick.
 * **One trace**: each request's span starts on the tick that asks (a child of that tick) and ends
   when the chunk is settled; inference runs under it, so a remote server's span joins the trace.
 
@@ -116,6 +119,8 @@ class _Request:
     world: WorldState
     history: tuple[WorldState, ...] = ()
     prefix: np.ndarray | None = None
+    past: tuple[tuple[int, np.ndarray], ...] = ()
+    """The commands sent before ``obs_tick``, oldest first, with their ticks."""
     expected_delay: int = 0
     ready_tick: int | None = None
     """Virtual latency: the tick from which the chunk may be used."""
@@ -150,6 +155,8 @@ class ChunkedExecutor:
             ``None``: always. Called once per tick on the tick thread, so it must be O(1).
         observation_steps: Observations each request carries, the current one included: the
             executor keeps the earlier ticks' (references, O(1) per tick) for policies that read a history.
+        past_actions: Commands sent before a request's tick that it carries (the runner hands
+            each one to :meth:`sent`); 0: none are kept.
         skill_id: Put on the actions.
         control_mode: Put on the actions.
         virtual_delay: Simulation only: ticks from request to use, per request index in the episode
@@ -166,6 +173,7 @@ class ChunkedExecutor:
         anchor: Anchor | None = None,
         available: Callable[[], bool] | None = None,
         observation_steps: int = 1,
+        past_actions: int = 0,
         skill_id: str | None = None,
         control_mode: ControlMode = ControlMode.JOINT_POSITION,
         virtual_delay: Callable[[int], int] | None = None,
@@ -189,6 +197,7 @@ class ChunkedExecutor:
         self.control_mode = control_mode
         self._available = available
         self._history: collections.deque[WorldState] = collections.deque(maxlen=max(0, observation_steps - 1))
+        self._past: collections.deque[tuple[int, np.ndarray]] = collections.deque(maxlen=max(0, past_actions))
         self._buffer = ChunkBuffer(len(self.action_names), config)
         self.stats = ExecutorStats()
         self._epoch = 0
@@ -238,6 +247,7 @@ class ChunkedExecutor:
             anchor=skill.action_anchor(),
             available=skill.available,
             observation_steps=info.observation_steps,
+            past_actions=info.past_actions,
             skill_id=info.skill_id,
             control_mode=info.control_mode,
             virtual_delay=virtual_delay,
@@ -282,6 +292,15 @@ class ChunkedExecutor:
             return Decision(Outcome.FALLBACK if fallback is StarvationFallback.SKILL else Outcome.STOP)
         return Decision(Outcome.HOLD, self._action(self.anchor.to_command(self._held, world), world), self._held_chunk)
 
+    def sent(self, tick_idx: int, command: Sequence[float]) -> None:
+        """The command the robot was sent on ``tick_idx``, after the safety check: kept for requests that read the past.
+
+        Called by the runner on the tick thread, after sending; O(1), and nothing at all when the
+        policy reads no past.
+        """
+        if self._past.maxlen:
+            self._past.append((tick_idx, np.asarray(command, dtype=np.float64)))
+
     def _unavailable(self, world: WorldState) -> Decision:
         """The source is down: its rows are dropped and the fallback decides now."""
         self._buffer.clear()
@@ -319,6 +338,7 @@ class ChunkedExecutor:
         self._starved_in_row = 0
         self._in_flight = None
         self._history.clear()  # a new episode's first request repeats its own first observation
+        self._past.clear()  # and reads no command of the episode before
         if self.virtual_delay is not None:
             # A simulated episode starts from the latency it will see (its first request's virtual
             # delay) and learns afresh from there: what an episode does depends on its seed alone,
@@ -366,7 +386,9 @@ class ChunkedExecutor:
             return  # one request at a time, a given-up one included: it still occupies the worker
         if self._buffer.ahead(tick_idx) > self._p95 + self.config.margin_ticks:
             return
-        request = _Request(self._next_id, self._epoch, tick_idx, world, history=tuple(self._history))
+        request = _Request(
+            self._next_id, self._epoch, tick_idx, world, history=tuple(self._history), past=tuple(self._past)
+        )
         self._next_id += 1
         self._in_flight = request
         self.stats.requests += 1
@@ -526,12 +548,16 @@ class ChunkedExecutor:
 
     def _run(self, request: _Request) -> None:
         """Infer under the request's span (so spans the policy makes, a remote server's too, are its children)."""
+        dims = len(self.action_names)
+        past = request.past
         asked = ChunkRequest(
             request.world,
             obs_tick=request.obs_tick,
             history=request.history,
-            prefix=request.prefix if request.prefix is not None else np.zeros((0, len(self.action_names))),
+            prefix=request.prefix if request.prefix is not None else np.zeros((0, dims)),
             inference_delay=request.expected_delay,
+            past=np.stack([command for _, command in past]) if past else np.zeros((0, dims)),
+            past_ticks=tuple(tick for tick, _ in past),
         )
         try:
             if request.span is None:

@@ -19,6 +19,19 @@ against the saved normalisation statistics, and runs ``warmup_inferences`` real 
 (CUDA context, kernels, allocator), so the first tick is on time. A chunking policy runs behind the
 chunk executor: its chunk is one array from the model to the executor, its first ``rows`` rows used
 (the checkpoint's ``n_action_steps`` unless overridden).
+
+A prefix-conditioned policy (``act_smooth``; :mod:`openral_rskill.lerobot.prefix`) is fed the
+executor's prefix, the targets it sends while the inference runs, in the policy's units: held to
+the request's delay as the executor holds it and clipped to the delays the checkpoint was trained
+on (logged). With no prefix (an episode's first request, or a synchronous executor) the row that
+stands for it is the last command sent, else the measured joints, else, for an action space of
+another kind (a simulation's end-effector moves), the action the training statistics centre on.
+Its chunk comes back aligned as every chunk is, row ``i`` for tick ``obs_tick + i``: the rows it
+was fed, then the model's. Its past commands are those the executor hands back after the safety check.
+
+A policy class from a plugin package runs only when the package's licence is accepted:
+``params.accept_licenses`` lists the SPDX ids accepted (default: the open ones), and a package that
+declares none is ``NOASSERTION``.
 """
 
 from __future__ import annotations
@@ -27,6 +40,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any, Literal, Self
 
 import numpy as np
+import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from openral_core import Action, ControlMode, RobotManifest, ROSConfigError, RSkillInfo, WorldState
@@ -36,7 +50,10 @@ from openral_rskill.base import ChunkingSkillBase, validate_params
 from openral_rskill.chunks import ChunkRequest
 from openral_rskill.lerobot.checkpoint import Checkpoint
 from openral_rskill.lerobot.observation import ObservationMap
+from openral_rskill.lerobot.prefix import PolicyPrefix, PrefixSpec, committed_rows
 from openral_rskill.worker_threads import threads_per_worker
+
+_log = structlog.get_logger(__name__)
 
 SKILL_ID = "lerobot_policy"
 MAX_BATCH = 256
@@ -72,6 +89,11 @@ class LeRobotPolicyParams(BaseModel):
         ge=1,
         le=256,
         description="PyTorch CPU threads (default: an evaluation worker's allowance, else PyTorch's own).",
+    )
+    accept_licenses: list[str] | None = Field(
+        default=None,
+        description="SPDX ids accepted for a policy from a plugin package (default: the open ones); "
+        "NOASSERTION accepts one that declares no licence.",
     )
 
 
@@ -110,7 +132,15 @@ class LeRobotPolicySkill(ChunkingSkillBase):
                 field="params.rows",
             )
         self.rows = rows if chunking else 1
+        self.prefix: PrefixSpec | None = self.checkpoint.prefix if chunking else None
+        if self.prefix is not None and params.representation != "absolute":
+            raise ROSConfigError(
+                f"the {self.checkpoint.policy_type} policy continues the targets already committed: its actions "
+                "must be absolute",
+                field="params.representation",
+            )
         self._policy: Any = None
+        self._clipped_logged = False
         self._info = RSkillInfo(
             skill_id=SKILL_ID,
             name=f"LeRobot {self.checkpoint.policy_type} {self.checkpoint.path.name}",
@@ -119,6 +149,8 @@ class LeRobotPolicySkill(ChunkingSkillBase):
             description=f"{self.checkpoint.policy_type} checkpoint at {self.checkpoint.path}",
             observation=self.inputs.reads,
             observation_steps=self.checkpoint.observation_steps,
+            # the last command sent also stands for an empty prefix
+            past_actions=0 if self.prefix is None else max(self.prefix.past, 1),
         )
 
     @classmethod
@@ -151,13 +183,18 @@ class LeRobotPolicySkill(ChunkingSkillBase):
         # Loaded only here: torch and lerobot (the 'lerobot' extra) take seconds to import.
         from openral_rskill.lerobot.runtime import LoadedPolicy  # noqa: PLC0415
 
-        threads = self.params.threads if self.params.threads is not None else threads_per_worker()
-        policy = LoadedPolicy(self.checkpoint, device=self.params.device, threads=threads)
+        params = self.params
+        threads = params.threads if params.threads is not None else threads_per_worker()
+        policy = LoadedPolicy(
+            self.checkpoint, device=params.device, threads=threads, accept_licenses=params.accept_licenses
+        )
         self._check_units(policy.state_bound())
         self._policy = policy
+        self._mean_action = policy.action_mean() if self.prefix is not None else None
         blank = self.inputs.blank()
-        for _ in range(self.params.warmup_inferences):  # on the device: the first tick must not pay for it
-            self._infer([blank] * self.checkpoint.observation_steps, "")
+        warmup = ChunkRequest(WorldState(stamp_ns=0))
+        for _ in range(params.warmup_inferences):  # on the device: the first tick must not pay for it
+            self._infer([blank] * self.checkpoint.observation_steps, "", prefix=self._policy_prefix(warmup)[1])
         policy.reset(None)
 
     def _check_units(self, bound: float | None) -> None:
@@ -179,17 +216,68 @@ class LeRobotPolicySkill(ChunkingSkillBase):
         self._policy = None
 
     def _on_reset(self) -> None:
+        self._clipped_logged = False
         if self._policy is not None:
             self._policy.reset(self.episode_seed)
 
-    def _infer(self, observations: list[dict[str, np.ndarray]], task: str, seed: int | None = None) -> np.ndarray:
-        rows = self._policy.chunk(observations, task, seed)[: self.rows]
+    def _infer(
+        self,
+        observations: list[dict[str, np.ndarray]],
+        task: str,
+        seed: int | None = None,
+        prefix: PolicyPrefix | None = None,
+    ) -> np.ndarray:
+        rows = self._policy.chunk(observations, task, seed, prefix)[: self.rows]
+        return self._radians(rows)
+
+    def _radians(self, rows: np.ndarray) -> np.ndarray:
         return rows if self.units.identity else self.units.to_radians(rows)
+
+    def _policy_units(self, rows: np.ndarray) -> np.ndarray:
+        return rows if self.units.identity else self.units.to_policy(rows)
 
     def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
         worlds = request.observations(self.checkpoint.observation_steps)
         seed = request.draw_seed(self.episode_seed)
-        return self._infer([self.inputs.arrays(w) for w in worlds], request.world.task or "", seed)
+        committed, prefix = self._policy_prefix(request)
+        rows = self._infer([self.inputs.arrays(w) for w in worlds], request.world.task or "", seed, prefix)
+        return rows if committed is None else np.concatenate([committed, rows])
+
+    def _policy_prefix(self, request: ChunkRequest) -> tuple[np.ndarray | None, PolicyPrefix | None]:
+        """A prefix-conditioned policy's committed rows (the robot's units) and its prefix (the policy's units).
+
+        ``(None, None)`` for a policy that reads no prefix.
+        """
+        spec = self.prefix
+        if spec is None:
+            return None, None
+        delay = request.inference_delay
+        if spec.max_delay is not None and delay > spec.max_delay and not self._clipped_logged:
+            self._clipped_logged = True  # once an episode: it holds for the episode's requests alike
+            _log.info(
+                "prefix delay clipped to the trained range",
+                delay=delay,
+                trained=spec.max_delay,
+                policy=self.checkpoint.policy_type,
+                hint="the executor skips the rows beyond it; train with a longer prefix to condition on them",
+            )
+        committed = committed_rows(request.prefix, delay, spec, self._start_row(request))
+        past = request.past[len(request.past) - spec.past :] if spec.past else request.past[:0]
+        prefix = PolicyPrefix(self._policy_units(committed), self._policy_units(past.reshape(-1, len(committed[0]))))
+        return committed, prefix
+
+    def _start_row(self, request: ChunkRequest) -> np.ndarray:
+        """What stands for an empty prefix: the last command sent, the measured joints, or the mean action."""
+        if len(request.past):
+            return np.asarray(request.past[-1], dtype=np.float64)
+        joints = request.world.joint_state
+        if joints is not None:
+            by_name = dict(zip(joints.names, joints.positions, strict=True))
+            names = self.robot.joint_names
+            if all(name in by_name for name in names):
+                return np.array([by_name[name] for name in names], dtype=np.float64)
+        assert self._mean_action is not None
+        return self._radians(self._mean_action)
 
     def serves_many_episodes(self) -> bool:
         """A chunk policy's chunk is a function of its request; a per-tick one keeps a queue of actions.
@@ -210,11 +298,18 @@ class LeRobotPolicySkill(ChunkingSkillBase):
         observations = [[self.inputs.arrays(w) for w in request.observations(steps)] for request in requests]
         tasks = [request.world.task or "" for request in requests]
         seeds = [request.draw_seed(self.episode_seed) for request in requests]
-        chunks = [rows[: self.rows] for rows in self._policy.chunks(observations, tasks, seeds)]
-        return chunks if self.units.identity else [self.units.to_radians(rows) for rows in chunks]
+        prefixes = [self._policy_prefix(request) for request in requests]
+        chunks = self._policy.chunks(observations, tasks, seeds, [prefix for _, prefix in prefixes])
+        rows = [self._radians(chunk[: self.rows]) for chunk in chunks]
+        return [
+            r if committed is None else np.concatenate([committed, r])
+            for (committed, _), r in zip(prefixes, rows, strict=True)
+        ]
 
     def _step_impl(self, world_state: WorldState) -> Action:
-        """A chunk policy's row 0; a per-tick policy's next action from its own queue."""
+        """A chunk policy's first row for this tick; a per-tick policy's next action from its own queue."""
+        if self.prefix is not None:  # the rows after the one it was fed for this very tick
+            return self._rows_action(world_state, self._chunk_impl(ChunkRequest(world_state))[1:2])
         if self.checkpoint.chunk_size > 1:
             return super()._step_impl(world_state)
         action = self._policy.select(self.inputs.arrays(world_state), world_state.task or "")

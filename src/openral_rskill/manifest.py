@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal, Self
+from typing import Any, Final, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 
@@ -40,6 +40,9 @@ OPEN_LICENSES: frozenset[str] = frozenset(
 )
 """SPDX ids accepted when a deployment does not set ``vla.accept_licenses``: permissive licences
 that allow commercial use without obligations beyond attribution (and MPL-2.0's file-level copyleft)."""
+
+NO_LICENSE: Final = "NOASSERTION"
+"""SPDX's word for a package or model that declares no licence: never accepted unless a deployment lists it."""
 
 # SPDX ids are matched case-insensitively (SPDX specification, annex on license expressions).
 _SPDX_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9.+-]*$"
@@ -149,30 +152,12 @@ class RSkillManifest(BaseModel):
         return self._source or f"rSkill '{self.name}'"
 
     def check_license(self, accept_licenses: Collection[str] | None = None) -> None:
-        """Raise unless the licence is accepted.
-
-        Args:
-            accept_licenses: SPDX ids the deployment accepts; ``None`` means :data:`OPEN_LICENSES`.
-                An explicit list replaces the default list rather than extending it, so a deployment
-                can also narrow what it accepts.
+        """Raise unless the licence is accepted (see :func:`check_license`).
 
         Raises:
             ROSLicenseError: Naming the licence, the manifest, and how to accept it.
         """
-        accepted = OPEN_LICENSES if accept_licenses is None else accept_licenses
-        if self.license.casefold() in {lic.casefold() for lic in accepted}:
-            return
-        why = "it is not on the built-in open-licence list" if accept_licenses is None else "it is not listed"
-        if _non_commercial(self.license):
-            why += "; it forbids commercial use, so accepting it is a decision for whoever operates the robot"
-        raise ROSLicenseError(
-            f"licence '{self.license}' of {self.source} is not accepted: {why}",
-            field="vla.accept_licenses",
-            hint=(
-                f"to accept it, add '{self.license}' to vla.accept_licenses in the deployment; "
-                "that list replaces the default open list, so also list any other licence you accept"
-            ),
-        )
+        check_license(self.license, self.source, accept_licenses)
 
     def check_compatible(self, robot_id: str) -> None:
         """Raise unless the manifest lists no robots or lists ``robot_id``.
@@ -221,6 +206,44 @@ def builtin_manifest(name: str) -> Path:
     if name not in known:
         raise ROSConfigError(f"no built-in rSkill manifest '{name}'; built-in: {', '.join(known)}")
     return Path(str(folder / f"{name}.rskill.yaml"))
+
+
+def check_license(
+    license_id: str,
+    source: str,
+    accept_licenses: Collection[str] | None = None,
+    *,
+    field: str = "vla.accept_licenses",
+) -> None:
+    """Raise unless ``license_id`` (an SPDX id) is accepted: the one licence gate of every skill and model.
+
+    Args:
+        license_id: The licence; ``NOASSERTION`` (SPDX's word) for one that declares none.
+        source: What carries it, as the error names it (a manifest's path, a package).
+        accept_licenses: SPDX ids the deployment accepts; ``None`` means :data:`OPEN_LICENSES`.
+            An explicit list replaces the default list rather than extending it, so a deployment
+            can also narrow what it accepts.
+        field: Where the deployment lists what it accepts.
+
+    Raises:
+        ROSLicenseError: Naming the licence, its source, and how to accept it.
+    """
+    accepted = OPEN_LICENSES if accept_licenses is None else accept_licenses
+    if license_id.casefold() in {lic.casefold() for lic in accepted}:
+        return
+    why = "it is not on the built-in open-licence list" if accept_licenses is None else "it is not listed"
+    if license_id.casefold() == NO_LICENSE.casefold():
+        why = "it declares no licence, so whether it may be used at all is a decision for whoever operates the robot"
+    elif _non_commercial(license_id):
+        why += "; it forbids commercial use, so accepting it is a decision for whoever operates the robot"
+    raise ROSLicenseError(
+        f"licence '{license_id}' of {source} is not accepted: {why}",
+        field=field,
+        hint=(
+            f"to accept it, add '{license_id}' to {field} in the deployment; "
+            "that list replaces the default open list, so also list any other licence you accept"
+        ),
+    )
 
 
 def _non_commercial(license_id: str) -> bool:

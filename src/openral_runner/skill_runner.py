@@ -181,6 +181,8 @@ class SkillRunnerBase(InferenceRunnerBase):
         elif to_send is not None:
             tick.action_applied = True
             self._last_sent = to_send.targets[0]
+            if self.executor is not None:
+                self.executor.sent(tick.tick_idx, to_send.targets[0])  # what a policy reading executed actions sees
         if requested is not None and action is not None:
             tick.requested_action = requested.first
             if tick.action_applied and to_send is not None:

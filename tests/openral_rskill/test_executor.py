@@ -423,6 +423,50 @@ def test_a_skill_that_continues_its_prefix_meets_the_old_chunk_without_a_jump() 
     assert jumps[False] > 1.0  # without the prefix every seam jumps back
 
 
+def test_requests_carry_the_last_commands_sent_by_tick_and_a_reset_forgets_them() -> None:
+    asked: list[ChunkRequest] = []
+
+    def infer(request: ChunkRequest) -> np.ndarray:
+        asked.append(request)
+        return np.array([[request.obs_tick * 100 + j, -j] for j in range(4)], dtype=float)
+
+    ex = ChunkedExecutor(
+        infer, ExecutorConfig(margin_ticks=0), action_names=NAMES, past_actions=3, virtual_delay=lambda _i: 1
+    )
+    for tick in range(12):
+        decision = ex.step(tick, world(tick))
+        if decision.action is not None and tick != 5:  # tick 5's command withheld: never sent
+            ex.sent(tick, [tick + 0.5, -float(tick)])  # what the robot got after the safety check
+    assert len(asked) >= 3
+    assert len(asked[0].past) == 0
+    assert asked[0].past_ticks == ()
+    for request in asked:
+        expected = [t for t in range(1, request.obs_tick) if t != 5][-3:]  # tick 0 awaited the first chunk
+        assert request.past_ticks == tuple(expected)  # the last three sent before the request's tick, oldest first
+        assert request.past.tolist() == [[t + 0.5, -float(t)] for t in expected]
+        assert request.past.shape == (len(expected), 2)
+    assert any(r.obs_tick > 5 and len(r.past) == 3 for r in asked)  # the withheld tick left a gap
+    ex.reset()
+    ex.step(12, world(12))
+    assert asked[-1].obs_tick == 12
+    assert len(asked[-1].past) == 0
+
+
+def test_without_past_actions_no_command_is_kept() -> None:
+    asked: list[ChunkRequest] = []
+
+    def infer(request: ChunkRequest) -> np.ndarray:
+        asked.append(request)
+        return np.zeros((3, 2))
+
+    ex = ChunkedExecutor(infer, action_names=NAMES, virtual_delay=lambda _i: 0)
+    for tick in range(8):
+        ex.step(tick, world(tick))
+        ex.sent(tick, [1.0, 2.0])
+    assert len(asked) >= 2
+    assert all(r.past.shape == (0, 2) and r.past_ticks == () for r in asked)
+
+
 def test_requests_carry_the_earlier_ticks_observations_and_a_reset_forgets_them() -> None:
     asked: list[ChunkRequest] = []
 

@@ -30,7 +30,7 @@ from click.testing import CliRunner  # noqa: E402
 from tests.conftest import InstalledPackages  # noqa: E402
 
 from openral_cli.main import cli  # noqa: E402
-from openral_core import ROSConfigError  # noqa: E402
+from openral_core import ROSConfigError, ROSLicenseError  # noqa: E402
 from openral_hal.lerobot.plugins import load_lerobot_plugins  # noqa: E402
 from openral_rskill.lerobot.checkpoint import Checkpoint  # noqa: E402
 from openral_rskill.lerobot.runtime import LoadedPolicy  # noqa: E402
@@ -88,7 +88,14 @@ from .modeling_{type} import PluginACTPolicy
 """
 
 
-def _install_plugin(packages: InstalledPackages, policy_type: str, *, rows: int = 20, importable: bool = False) -> Path:
+def _install_plugin(
+    packages: InstalledPackages,
+    policy_type: str,
+    *,
+    rows: int = 20,
+    importable: bool = False,
+    license_id: str | None = "Apache-2.0",
+) -> Path:
     """``lerobot_policy_<policy_type>``: ACT under another type name, returning the first ``rows`` of each chunk."""
     fields = {"type": policy_type, "log": CALLS_LOG, "rows": rows}
     return packages(
@@ -99,6 +106,7 @@ def _install_plugin(packages: InstalledPackages, policy_type: str, *, rows: int 
             f"modeling_{policy_type}.py": MODELING.format(**fields),
         },
         importable=importable,
+        license_id=license_id,
     )
 
 
@@ -143,6 +151,23 @@ def test_a_plugin_policy_returning_fewer_rows_than_its_config_declares_is_refuse
     text = str(caught.value)
     assert "declares chunks of 20 rows, but the act_plugin_short policy's predict_action_chunk returned" in text
     assert "(1, 3, 4)" in text
+
+
+def test_a_plugin_policy_declaring_no_licence_loads_only_once_the_deployment_accepts_that(
+    tmp_path: Path, installed_package: InstalledPackages
+) -> None:
+    _install_plugin(installed_package, "act_plugin_unlicensed", importable=True, license_id=None)
+    checkpoint = Checkpoint.read(str(_checkpoint(tmp_path, "act_plugin_unlicensed")))
+    with pytest.raises(ROSLicenseError) as caught:
+        LoadedPolicy(checkpoint, device="cpu")
+    text = str(caught.value)
+    assert "licence 'NOASSERTION' of the package lerobot_policy_act_plugin_unlicensed" in text
+    assert "which provides policy type 'act_plugin_unlicensed'" in text
+    assert caught.value.field == "params.accept_licenses"
+    with pytest.raises(ROSLicenseError):
+        LoadedPolicy(checkpoint, device="cpu", accept_licenses=["Apache-2.0"])  # a list names what it accepts
+    accepted = LoadedPolicy(checkpoint, device="cpu", accept_licenses=["noassertion"])
+    assert type(accepted.policy).__name__ == "PluginACTPolicy"
 
 
 def test_a_plugin_that_fails_to_import_leaves_the_others_and_lerobot_working(
@@ -226,7 +251,9 @@ import numpy as np, torch
 from pathlib import Path
 from lerobot.configs.types import FeatureType, PolicyFeature
 from openral_hal.lerobot.plugins import load_lerobot_plugins
+from openral_core import ROSConfigError, ROSLicenseError
 from openral_rskill.lerobot.checkpoint import Checkpoint
+from openral_rskill.lerobot.prefix import PolicyPrefix
 
 load_lerobot_plugins()  # act_smooth is registered by its package, found as an installed distribution
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -248,15 +275,22 @@ folder = Path(sys.argv[1])
 for part in (policy, pre, post):
     part.save_pretrained(folder)
 checkpoint = Checkpoint.read(str(folder))
-loaded = LoadedPolicy(checkpoint, device="cpu")
 try:
-    loaded.chunk([{"observation.state": np.zeros(14, np.float32),
-                   "observation.environment_state": np.zeros(3, np.float32)}], "")
-    chunked = "ok"
-except AssertionError as exc:
-    chunked = str(exc)
+    LoadedPolicy(checkpoint, device="cpu")
+    refused = ""
+except ROSLicenseError as exc:
+    refused = str(exc)
+loaded = LoadedPolicy(checkpoint, device="cpu", accept_licenses=["NOASSERTION"])
+observation = {"observation.state": np.zeros(14, np.float32), "observation.environment_state": np.zeros(3, np.float32)}
+try:
+    loaded.chunk([observation], "")
+    unprefixed = "ok"
+except ROSConfigError as exc:
+    unprefixed = str(exc)
+prefix = PolicyPrefix(committed=np.zeros((1, 4)), past=np.zeros((0, 4)))  # its defaults: d = 1, no past
 print(json.dumps({"type": checkpoint.policy_type, "rows": [checkpoint.chunk_size, checkpoint.n_action_steps],
-                  "class": type(loaded.policy).__name__, "chunk": chunked}))
+                  "class": type(loaded.policy).__name__, "refused": refused, "unprefixed": unprefixed,
+                  "chunk": list(loaded.chunk([observation], "", prefix=prefix).shape)}))
 """
 
 
@@ -265,9 +299,9 @@ print(json.dumps({"type": checkpoint.policy_type, "rows": [checkpoint.chunk_size
 def test_the_act_smooth_plugin_from_pypi_loads_in_a_venv_of_its_own(tmp_path: Path) -> None:
     """``lerobot-policy-act-smooth`` installed by uv into a venv that sees this one's packages (lerobot, torch).
 
-    It registers ``act_smooth`` and loads; its ``predict_action_chunk`` needs the previous chunk's
-    committed rows as a prefix (``inference_action``), which openral does not hand a policy: its
-    chunk is refused, so the skill fails in ``configure``, never acting on a guess. Needs PyPI.
+    It registers ``act_smooth``; it declares no licence, so it loads only once that is accepted.
+    Its ``predict_action_chunk`` continues the committed rows (``inference_action``): asked without
+    them it is refused, never run on a guess; with them it gives its chunk. Needs PyPI.
     """
     uv = shutil.which("uv")
     if uv is None:
@@ -290,9 +324,12 @@ def test_the_act_smooth_plugin_from_pypi_loads_in_a_venv_of_its_own(tmp_path: Pa
     )  # fmt: skip
     assert out.returncode == 0, out.stderr[-3000:]
     found = json.loads(out.stdout.splitlines()[-1])
+    refused = found.pop("refused")
+    assert "licence 'NOASSERTION' of the package lerobot_policy_act_smooth" in refused
+    assert "each chunk needs the committed rows it continues" in found.pop("unprefixed")
     assert found == {
         "type": "act_smooth",
         "rows": [20, 10],  # read from its config.json as a chunking policy, no list naming it
         "class": "ACTSmoothPolicy",
-        "chunk": "batch must contain inference_action",
+        "chunk": [20, 4],
     }

@@ -19,7 +19,8 @@ from openral_core import (
     WorldState,
 )
 from openral_observability.observer import TickObserver
-from openral_rskill.base import RSkillBase
+from openral_rskill.base import ChunkingSkillBase, RSkillBase
+from openral_rskill.chunks import ChunkRequest
 from openral_sim.envs.mock import MockParams, MockReachEnv
 from openral_sim.runner import SimRunner
 
@@ -118,3 +119,61 @@ def test_stale_start_runs_each_chunk_from_its_first_row() -> None:
     assert runner.executor is not None
     assert runner.executor.stats.rows_skipped == 0
     assert np.isfinite(runner.episode_results[0].sum_reward)
+
+
+class OvershootingChunks(ChunkingSkillBase):
+    """Rows past the action box (the safety check clamps them); it reads the last 3 commands sent."""
+
+    def __init__(self, robot: RobotManifest) -> None:
+        super().__init__()
+        self.names = robot.joint_names
+        self._info = RSkillInfo(skill_id="overshooting_chunks", chunk_size=4, past_actions=3)
+        self.asked: list[ChunkRequest] = []
+
+    @classmethod
+    def from_config(cls, params: Mapping[str, Any], *, robot: RobotManifest, rate_hz: float) -> OvershootingChunks:
+        return cls(robot)
+
+    @property
+    def info(self) -> RSkillInfo:
+        return self._info
+
+    @property
+    def action_names(self) -> list[str]:
+        return list(self.names)
+
+    def _chunk_impl(self, request: ChunkRequest) -> np.ndarray:
+        self.asked.append(request)
+        k = request.obs_tick
+        return np.array([[0.5 + 0.1 * (k + j), -0.01 * (k + j)] for j in range(4)])
+
+
+def test_a_request_reads_the_commands_sent_after_the_safety_clamp_by_tick() -> None:
+    env = MockReachEnv(MockParams())
+    scene = SimEnvironment(
+        name="reach", env="mock", task="reach", success_key="is_success", max_steps=12, n_episodes=2, seed=4,
+        virtual_latency=VirtualLatency(ticks=1), executor=ExecutorConfig(margin_ticks=0),
+    )  # fmt: skip
+    skill = OvershootingChunks(env.spec.action_manifest("mock"))
+    runner = SimRunner(env=env, scene=scene, skill=skill)
+    steps = Steps()
+    runner.observers.append(steps)
+    skill.configure()
+    skill.activate()
+    runner.activate()
+    try:
+        runner.run(max_ticks=100)
+    finally:
+        runner.deactivate()
+    sent = {t.tick_idx: t.sent_action for t in steps.ticks if t.sent_action is not None}
+    assert any(t.requested_action != t.sent_action for t in steps.ticks if t.sent_action is not None)  # clamped
+    episode_of = {t.tick_idx: t.episode_idx for t in steps.ticks}
+    assert len(skill.asked) >= 6
+    firsts = 0
+    for request in skill.asked:
+        episode = episode_of[request.obs_tick]
+        before = [t for t in sorted(sent) if t < request.obs_tick and episode_of[t] == episode][-3:]
+        assert request.past_ticks == tuple(before)  # this episode's, oldest first
+        assert request.past.tolist() == [sent[t] for t in before]  # as sent: clamped into the box
+        firsts += not before
+    assert firsts == 2  # each episode's first request reads no command

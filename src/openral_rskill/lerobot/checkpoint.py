@@ -25,6 +25,7 @@ from typing import Any, Final
 
 from openral_core import ROSConfigError
 from openral_core.config_files import load_json_file, resolve_user_path
+from openral_rskill.lerobot.prefix import PrefixSpec, conditioning_for
 
 REQUIRED_FILES: Final = (
     "config.json",
@@ -78,6 +79,8 @@ class Checkpoint:
         n_action_steps: Rows LeRobot executes of each chunk before asking again.
         observation_steps: Observations one inference reads (``n_obs_steps``).
         trained_device: The device the checkpoint was trained on.
+        prefix: What a prefix-conditioned policy reads (:mod:`openral_rskill.lerobot.prefix`);
+            ``None`` for a policy that reads no prefix.
     """
 
     path: Path
@@ -88,6 +91,7 @@ class Checkpoint:
     n_action_steps: int
     observation_steps: int
     trained_device: str
+    prefix: PrefixSpec | None = None
 
     @classmethod
     def read(cls, value: str, base_dir: Path | None = None, *, field: str = _FIELD) -> Checkpoint:
@@ -136,6 +140,7 @@ class Checkpoint:
             chunk_size = n_action_steps  # predict_action_chunk returns the executed window of the horizon
         else:
             chunk_size = _positive(config, "chunk_size", path, field, default=1)
+        conditioning = conditioning_for(policy_type)
         return cls(
             path=path,
             policy_type=policy_type,
@@ -145,6 +150,7 @@ class Checkpoint:
             n_action_steps=min(n_action_steps, chunk_size),
             observation_steps=_positive(config, "n_obs_steps", path, field, default=1),
             trained_device=str(config.get("device") or "cpu"),
+            prefix=None if conditioning is None else conditioning.spec(config, path),
         )
 
     def check_type(self, known: Iterable[str]) -> None:

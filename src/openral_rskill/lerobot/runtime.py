@@ -26,7 +26,9 @@ import numpy as np
 
 from openral_core import ROSConfigError, ROSDependencyMissing
 from openral_hal.lerobot.plugins import load_lerobot_plugins
-from openral_rskill.lerobot.checkpoint import STATE, Checkpoint, weights_mismatch
+from openral_rskill.lerobot.checkpoint import ACTION, STATE, Checkpoint, weights_mismatch
+from openral_rskill.lerobot.licence import check_policy_license
+from openral_rskill.lerobot.prefix import PolicyInputs, PolicyPrefix, conditioning_for
 
 try:
     import torch
@@ -74,12 +76,22 @@ class LoadedPolicy:
         checkpoint: The folder, read.
         device: ``cpu``, ``cuda``, ``mps`` or ``auto``.
         threads: PyTorch's CPU threads (``None``: its default).
+        accept_licenses: Licences accepted for a policy class from a plugin package (``None``:
+            the open ones, :data:`~openral_rskill.manifest.OPEN_LICENSES`).
 
     Raises:
         ROSConfigError: The device is missing, or LeRobot cannot load the folder.
+        ROSLicenseError: The policy's plugin package has a licence not accepted (or declares none).
     """
 
-    def __init__(self, checkpoint: Checkpoint, *, device: str, threads: int | None = None) -> None:
+    def __init__(
+        self,
+        checkpoint: Checkpoint,
+        *,
+        device: str,
+        threads: int | None = None,
+        accept_licenses: Sequence[str] | None = None,
+    ) -> None:
         self.checkpoint = checkpoint
         self.device = resolve_device(device)
         if threads is not None:
@@ -88,12 +100,14 @@ class LoadedPolicy:
         try:
             load_lerobot_plugins()  # a plugin's policy type is registered only once its package is imported
             checkpoint.check_type(PreTrainedConfig.get_known_choices())
+            policy_class = get_policy_class(checkpoint.policy_type)
+            check_policy_license(policy_class.__module__, checkpoint.policy_type, accept_licenses)
             config = PreTrainedConfig.from_pretrained(path)
             if getattr(config, "pretrained_backbone_weights", None):
                 config.pretrained_backbone_weights = None  # ImageNet weights, overwritten by the checkpoint's
             config.device = self.device
             # strict: LeRobot's default leaves what model.safetensors lacks at its random initialisation
-            self.policy: Any = get_policy_class(config.type).from_pretrained(path, config=config, strict=True)
+            self.policy: Any = policy_class.from_pretrained(path, config=config, strict=True)
             self.pre, self.post = make_pre_post_processors(
                 self.policy.config,
                 pretrained_path=str(path),
@@ -109,6 +123,15 @@ class LoadedPolicy:
         self.policy.eval()
         self._draws_nothing = checkpoint.policy_type in DRAWS_NOTHING
         self._noise_shape = _noise_shape(self.policy.config)
+        self._conditioning = conditioning_for(checkpoint.policy_type)
+        self._actions: Any = None if self._conditioning is None else _action_normaliser(self.pre, checkpoint)
+
+    def action_mean(self) -> np.ndarray:
+        """``(dims,)``: the action the checkpoint's statistics centre on (normalised zero), in the policy's units."""
+        zero = torch.zeros((1, self.checkpoint.action.shape[0]), dtype=torch.float32, device=self.device)
+        with torch.inference_mode():
+            mean = self._actions._normalize_action(zero, inverse=True)
+        return np.asarray(mean.detach().to("cpu", torch.float64).numpy()).reshape(-1)
 
     def state_bound(self) -> float | None:
         """The largest magnitude ``observation.state`` had in training (from the saved statistics), if known."""
@@ -133,21 +156,30 @@ class LoadedPolicy:
         if seed is not None:
             torch.manual_seed(seed)
 
-    def chunk(self, observations: Sequence[dict[str, np.ndarray]], task: str, seed: int | None = None) -> np.ndarray:
+    def chunk(
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        task: str,
+        seed: int | None = None,
+        prefix: PolicyPrefix | None = None,
+    ) -> np.ndarray:
         """``(rows, action_dim)`` of the policy's next chunk, in its own units, for the observations (oldest first).
 
         One observation: LeRobot's preprocessor batches it. Several (a policy reading
         ``n_obs_steps``): each is preprocessed, then they are stacked on the time axis the policy
         expects, and its queues are emptied first so the stack is what it reads. ``seed``: the
-        seed its sampling draws from (``None``: the process's generator as it stands).
+        seed its sampling draws from (``None``: the process's generator as it stands). ``prefix``:
+        a prefix-conditioned policy's committed rows and past commands, in its units; its chunk
+        then starts at the tick after the last committed row.
         """
-        return self.chunks([observations], [task], [seed])[0]
+        return self.chunks([observations], [task], [seed], None if prefix is None else [prefix])[0]
 
     def chunks(
         self,
         requests: Sequence[Sequence[dict[str, np.ndarray]]],
         tasks: Sequence[str],
         seeds: Sequence[int | None] | None = None,
+        prefixes: Sequence[PolicyPrefix | None] | None = None,
     ) -> list[np.ndarray]:
         """The chunks of several requests (each its observations, oldest first) in one forward pass.
 
@@ -155,26 +187,65 @@ class LoadedPolicy:
         concatenated on the batch axis: batched rows equal unbatched ones up to the kernels' float
         rounding. A request's ``seeds`` entry makes its sampling its own: Diffusion's noise is
         drawn per request from its seed and handed in; a policy whose noise cannot be handed in
-        runs each seeded request alone, the process's generator seeded for it.
+        runs each seeded request alone, the process's generator seeded for it. A prefix-conditioned
+        policy's ``prefixes`` are normalised and added after preprocessing (LeRobot's preprocessor
+        drops them); one handed as keyword arguments runs each request alone.
         """
         drawn = [None] * len(requests) if seeds is None or self._draws_nothing else list(seeds)
-        if len(requests) > 1 and self._noise_shape is None and any(seed is not None for seed in drawn):
-            alone = zip(requests, tasks, drawn, strict=True)
-            return [self.chunks([one], [task], [seed])[0] for one, task, seed in alone]
+        given = [None] * len(requests) if prefixes is None else list(prefixes)
+        alone_only = self._conditioning is not None and not self._conditioning.batched
+        if len(requests) > 1 and (
+            (self._noise_shape is None and any(seed is not None for seed in drawn)) or alone_only
+        ):
+            alone = zip(requests, tasks, drawn, given, strict=True)
+            return [
+                self.chunks([one], [task], [seed], None if prefix is None else [prefix])[0]
+                for one, task, seed, prefix in alone
+            ]
         with torch.inference_mode():
-            batches = [self._batch(observations, task) for observations, task in zip(requests, tasks, strict=True)]
+            batches, kwargs = [], {}
+            for observations, task, prefix in zip(requests, tasks, given, strict=True):
+                batch = self._batch(observations, task)
+                inputs = self._prefix_inputs(prefix)
+                batch.update(inputs.batch)
+                kwargs = inputs.kwargs
+                batches.append(batch)
             batch = batches[0] if len(batches) == 1 else _concatenate(batches)
             if self._noise_shape is not None and any(seed is not None for seed in drawn):
-                actions = self.policy.predict_action_chunk(batch, noise=self._noise(drawn))
+                actions = self.policy.predict_action_chunk(batch, noise=self._noise(drawn), **kwargs)
             else:
                 if drawn[0] is not None:
                     torch.manual_seed(drawn[0])
-                actions = self.policy.predict_action_chunk(batch)
+                actions = self.policy.predict_action_chunk(batch, **kwargs)
             actions = self.post(actions)
             self._synchronize()
         rows = actions.detach().to("cpu", torch.float64).numpy()
         self._check_rows(rows.shape)
         return [np.asarray(rows[i]) for i in range(len(batches))]
+
+    def _prefix_inputs(self, prefix: PolicyPrefix | None) -> PolicyInputs:
+        """A prefix-conditioned policy's inputs for ``prefix``, normalised as its actions were in training.
+
+        Raises:
+            ROSConfigError: A prefix-conditioned policy asked without a prefix.
+        """
+        if self._conditioning is None:
+            return PolicyInputs()
+        if prefix is None:
+            raise ROSConfigError(
+                f"the {self.checkpoint.policy_type} policy at {self.checkpoint.path} is prefix-conditioned: "
+                "each chunk needs the committed rows it continues",
+                field=_FIELD,
+            )
+        committed = self._normalised(prefix.committed)
+        past = self._normalised(prefix.past)
+        return self._conditioning.inputs(self.policy, committed, past)
+
+    def _normalised(self, rows: np.ndarray) -> Any:
+        """``(1, n, dims)`` on the policy's device, normalised with the checkpoint's action statistics."""
+        dims = self.checkpoint.action.shape[0]
+        tensor = torch.as_tensor(np.asarray(rows, dtype=np.float32).reshape(1, -1, dims), device=self.device)
+        return self._actions._normalize_action(tensor, inverse=False)
 
     def _check_rows(self, shape: tuple[int, ...]) -> None:
         """Refuse a chunk shorter than the configuration declares: the policy class must deliver what config.json says.
@@ -240,6 +311,24 @@ def _concatenate(batches: Sequence[dict[str, Any]]) -> dict[str, Any]:
         else:
             joined[key] = first
     return joined
+
+
+def _action_normaliser(pre: Any, checkpoint: Checkpoint) -> Any:
+    """The preprocessor's step that normalises actions as in training: a prefix is normalised by it.
+
+    Raises:
+        ROSConfigError: The saved preprocessor holds no action statistics.
+    """
+    for step in getattr(pre, "steps", []):
+        stats = getattr(step, "_tensor_stats", None)
+        if hasattr(step, "_normalize_action") and isinstance(stats, dict) and ACTION in stats:
+            return step
+    raise ROSConfigError(
+        f"{checkpoint.path / 'policy_preprocessor.json'} normalises no action, but the {checkpoint.policy_type} "
+        "policy reads its prefix normalised as its actions were in training",
+        field=_FIELD,
+        hint="use the pretrained_model folder lerobot-train saved, processors and statistics included",
+    )
 
 
 def _noise_shape(config: Any) -> tuple[int, ...] | None:
