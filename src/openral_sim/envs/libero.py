@@ -24,14 +24,17 @@ Episode length is the scene's ``max_steps`` (the suites' scenes use LeRobot's, :
 ``step_limit: openpi`` (or ``lerobot``) also ends a suite task's episode as truncated after that
 protocol's length for the suite (:data:`OPENPI_MAX_STEPS`: openpi's example and vla-eval), so one
 scene file can be scored either way; a LIBERO-Pro suite takes the length of the suite it perturbs.
-The settle steps are not counted, on every side: LeRobot's ``num_steps_wait`` and openpi's are 10
-no-op steps outside the limit, as ``settle_steps`` (10) is here.
+Both conventions include the same 10 no-op settling steps (gripper open) and count none of them:
+LeRobot's ``num_steps_wait`` runs them in ``reset``, openpi's example runs ``num_steps_wait`` steps
+of its dummy action before the policy's first and stops at ``max_steps + num_steps_wait``; here they
+are ``settle_steps`` (10), run in :meth:`LiberoEnv.reset`.
 
 LIBERO-Pro's suites (``libero_spatial_swap``...) are LIBERO's tasks with one thing changed
-(:data:`PERTURBATIONS`); task ``i`` of each is task ``i`` of the suite it perturbs, from its own
-initial states. Their instruction is the perturbed problem file's ``(:language ...)`` where the
+(:data:`PERTURBATIONS`); task ``i`` of each is task ``i`` of the suite it perturbs. Each ships its
+own 50 initial states per task (the arm's joints up to 0.06 rad and objects up to 3 cm from
+LIBERO's). The instruction is the perturbed problem file's ``(:language ...)`` where the
 perturbation is the language (``lan``, ``task``), and LeRobot's name of the base task otherwise, so
-a row differs from its base row in the perturbation alone.
+the words change only where that is the perturbation.
 
 The state is LeRobot's 8-d LIBERO state: end-effector position, its orientation as a rotation
 vector, the two finger joints. Privileged values:
@@ -188,7 +191,8 @@ class LiberoParams(BaseModel):
     )
     step_limit: Literal["scene", "lerobot", "openpi"] = Field(
         default="scene",
-        description="scene: max_steps alone; lerobot or openpi: also truncate a suite task at that protocol's length.",
+        description="scene: max_steps alone; lerobot or openpi: also truncate a suite task at that protocol's "
+        "length (a LIBERO-Pro suite's is its base suite's).",
     )
 
 
