@@ -11,9 +11,16 @@ from openral_core import BenchmarkSuite, ROSDependencyMissing
 from openral_sim.benchmark.rows import check_rows, load_rows
 
 SUITES = sorted((Path(__file__).resolve().parents[2] / "benchmarks" / "suites").glob("*.yaml"))
+SLOW_SUITES = {"libero_pro"}
+"""Suites whose every environment takes long to build (20 LIBERO tasks): checked in the slow tail; their scenes are
+checked one by one in the fast suite (tests/openral_sim/test_libero_pro.py)."""
 
 
-@pytest.mark.parametrize("suite_file", SUITES, ids=lambda p: p.stem)
+@pytest.mark.parametrize(
+    "suite_file",
+    [pytest.param(path, marks=pytest.mark.slow) if path.stem in SLOW_SUITES else path for path in SUITES],
+    ids=lambda p: p.stem,
+)
 def test_a_shipped_suite_resolves_every_row(suite_file: Path) -> None:
     suite = BenchmarkSuite.from_yaml(suite_file)
     try:

@@ -32,6 +32,8 @@ BOOTSTRAP_RESAMPLES: Final = 4000
 BOOTSTRAP_SEED: Final = 0
 PAIRED_FIELDS: Final = ("env", "env_id")
 """What a row of A and its row of B must share besides the scene and the seeds."""
+LIMIT_FIELDS: Final = ("max_steps", "step_limit")
+"""The episode length and its named convention: compared where both rows carry them (older reports do not)."""
 
 
 def load_report(path: Path, *, field: str) -> dict[str, Any]:
@@ -107,13 +109,14 @@ def compare_rows(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
     """One scene: A's row and B's, their episodes paired by seed.
 
     Raises:
-        ROSConfigError: The rows differ in environment or seeds.
+        ROSConfigError: The rows differ in environment, seeds or episode length.
     """
     scene = a["scene"]
     mismatch = timing_problem(a, b)
     if mismatch is not None:
         raise ROSConfigError(f"scene {scene!r}: {mismatch}", field=f"B.results[{scene}].timing")
-    for key in (*PAIRED_FIELDS, "seeds"):
+    shared_limits = tuple(key for key in LIMIT_FIELDS if key in a and key in b)
+    for key in (*PAIRED_FIELDS, "seeds", *shared_limits):
         if a.get(key) != b.get(key):
             raise ROSConfigError(
                 f"scene {scene!r}: A's row has {key} {a.get(key)!r} and B's {b.get(key)!r}; paired rows must agree",

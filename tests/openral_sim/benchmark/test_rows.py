@@ -71,7 +71,15 @@ def test_a_rows_head_names_its_first_and_last_seed() -> None:
         "skill_params": {"a": 1},
         "seeds": [10, 13],
         "timing": "virtual",
+        "max_steps": 60,
     }
+
+
+def test_a_rows_head_names_the_step_limit_convention_its_scene_names() -> None:
+    row = _row()
+    scene = row.scene.model_copy(update={"env_kwargs": {**row.scene.env_kwargs, "step_limit": "openpi"}})
+    head = SuiteRow(row.run, scene).head()
+    assert (head["step_limit"], head["max_steps"]) == ("openpi", 60)
 
 
 def test_overrides_that_are_not_given_keep_the_scenes_values() -> None:
