@@ -76,6 +76,14 @@ def sim() -> None:
 @click.option("--n-episodes", type=click.IntRange(min=1), default=None, help="Overrides the scene's episode count.")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Seed of episode 0 (episode i: seed + i).")
 @click.option(
+    "--set",
+    "assignments",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Override a scene field, validated as the file's own (repeatable; value in YAML): "
+    "--set virtual_latency.ticks=2 --set executor.indexing=stale_start.",
+)
+@click.option(
     "--save-video",
     type=click.Path(path_type=Path, file_okay=False),
     default=None,
@@ -103,6 +111,7 @@ def sim_run(
     skill_params: str | None,
     n_episodes: int | None,
     seed: int | None,
+    assignments: tuple[str, ...],
     save_video: Path | None,
     videos: int,
     dataset_out: Path | None,
@@ -126,7 +135,7 @@ def sim_run(
 
     code = EXIT_OK
     with StopSignals() as signals, exit_codes(bool(ctx.obj["debug"])):
-        scene = with_overrides(SimEnvironment.from_yaml(config_path), n_episodes, seed)
+        scene = with_overrides(SimEnvironment.from_yaml(config_path, overrides=assignments), n_episodes, seed)
         if no_cameras:
             scene = scene.model_copy(update={"cameras": []})
         if real_time:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import copy
 import difflib
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+import yaml
 from pydantic import BaseModel, ValidationError
 
 from openral_core.config_files import CONFIG_DIR, is_plain, load_config_file
@@ -15,22 +18,62 @@ from openral_core.errors import ROSConfigError
 ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
-def load_model_yaml(model: type[ModelT], path: Path, *, field: str | None = None) -> ModelT:
+def load_model_yaml(
+    model: type[ModelT], path: Path, *, field: str | None = None, overrides: Sequence[str] = ()
+) -> ModelT:
     """Read ``path`` (YAML, or JSON for ``.json``) and validate it as ``model``.
 
     Args:
         field: The option or field that named the file (``--config``, ``vla.manifest``); file-level
             errors name it, and field errors inside the file say which file they are in.
+        overrides: ``dotted.key=value`` assignments applied to the file's data before validation
+            (:func:`apply_overrides`), so an override is checked exactly as the file's own value is.
 
     Raises:
-        ROSConfigError: Unreadable or hostile file, invalid YAML, or a field error (named, with a fix).
+        ROSConfigError: Unreadable or hostile file, invalid YAML, a malformed override, or a field
+            error (named, with a fix).
     """
     data = load_config_file(path, field=field)
     if not isinstance(data, dict):
         kind = "nothing" if data is None else type(data).__name__
         raise ROSConfigError(f"{path} must hold a mapping at the top level, not {kind}", field=field)
+    data = apply_overrides(data, overrides)
     source = f"{field}: {path}" if field else str(path)
     return validate_model(model, data, source=source, context={CONFIG_DIR: str(path.resolve().parent)})
+
+
+def apply_overrides(data: dict[str, Any], assignments: Sequence[str], *, option: str = "--set") -> dict[str, Any]:
+    """``data`` with each ``dotted.key=value`` assignment set (the value read as YAML: ``2``, ``null``, ``{ticks: 3}``).
+
+    Intermediate mappings are created where missing; a key below a value that is not a mapping is
+    refused rather than replacing it. ``data`` itself is not changed.
+
+    Raises:
+        ROSConfigError: An assignment without ``=``, with an empty key part, or with a value that is not YAML.
+    """
+    result = copy.deepcopy(data)
+    for assignment in assignments:
+        key, equals, text = assignment.partition("=")
+        parts = key.strip().split(".")
+        if not equals or not all(parts):
+            raise ROSConfigError(
+                f"{option} {assignment!r} is not KEY=VALUE", field=option, hint="e.g. --set virtual_latency.ticks=2"
+            )
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ROSConfigError(f"{option} {assignment!r}: the value is not YAML ({exc})", field=option) from exc
+        target = result
+        for depth, part in enumerate(parts[:-1]):
+            child = target.setdefault(part, {})
+            if not isinstance(child, dict):
+                above = ".".join(parts[: depth + 1])
+                raise ROSConfigError(
+                    f"{option} {assignment!r}: {above} is {child!r}, not a mapping with keys", field=option
+                )
+            target = child
+        target[parts[-1]] = value
+    return result
 
 
 def validate_model(
@@ -65,15 +108,22 @@ def config_error_from_validation(
     exc: ValidationError, model: type[BaseModel], *, source: str | None = None, field_prefix: str | None = None
 ) -> ROSConfigError:
     """Describe a pydantic ``ValidationError`` as a single ``ROSConfigError``."""
-    errors = exc.errors(include_url=False)
+    errors: list[dict[str, Any]] = [
+        {**error, "loc": _field_path(model, error["loc"])} for error in exc.errors(include_url=False)
+    ]
     first = errors[0]
     field = _dotted(first["loc"])
     if field_prefix:
         field = f"{field_prefix}{'' if field.startswith('[') else '.'}{field}" if field else field_prefix
     message, hint = _describe(first, model)
-    if len(errors) > 1:
-        others = ", ".join(_dotted(e["loc"]) or "<root>" for e in errors[1:4])
-        message = f"{message}; also invalid: {others}"
+    # A field of several accepted forms fails once per form: the forms failed at the same place are
+    # told together, and one whose error lies deeper (inside the first form) is not repeated.
+    forms = [e for e in errors[1:] if e["loc"] == first["loc"]]
+    if forms:
+        message = " or ".join(dict.fromkeys([message, *(_describe(e, model)[0] for e in forms)]))
+    others = [e for e in errors[1:] if first["loc"][: len(e["loc"])] != e["loc"]]
+    if others:
+        message = f"{message}; also invalid: {', '.join(_dotted(e['loc']) or '<root>' for e in others[:3])}"
     if source:
         message = f"{message} [in {source}]"
     return ROSConfigError(message, field=field or None, hint=hint)
@@ -124,6 +174,35 @@ def _describe_input(value: Any) -> str:
     if isinstance(value, list):
         return "a list"
     return f"{type(value).__name__} {value!r}"[:60]
+
+
+def _field_path(model: type[BaseModel], loc: tuple[int | str, ...]) -> tuple[int | str, ...]:
+    """``loc`` without pydantic's union-member tags (``VirtualLatency``, ``literal['measured']``): field names only.
+
+    A tag follows a field whose annotation is a union: it is the member model's class name, or
+    the name pydantic gives a member that is no model.
+    """
+    path: list[int | str] = []
+    current: Any = model
+    tagged = False
+    for part in loc:
+        if isinstance(part, int):
+            path.append(part)
+            continue
+        if isinstance(current, type) and issubclass(current, BaseModel):
+            info = current.model_fields.get(part)
+            if info is not None:
+                path.append(part)
+                annotation = info.annotation
+                tagged = len(getattr(annotation, "__args__", ()) or ()) > 1
+                current = _model_in(annotation)
+                continue
+        if tagged:
+            tagged = False  # the member's tag: the next parts are that member's fields
+            continue
+        path.append(part)
+        current = None
+    return tuple(path)
 
 
 def _allowed_keys(model: type[BaseModel], loc: tuple[int | str, ...]) -> list[str]:

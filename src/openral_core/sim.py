@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal, Self
 
@@ -104,15 +105,15 @@ class SimEnvironment(Watched):
         return cameras
 
     @classmethod
-    def from_yaml(cls, path: Path) -> Self:
-        """Read and validate a scene file.
+    def from_yaml(cls, path: Path, *, overrides: Sequence[str] = ()) -> Self:
+        """Read and validate a scene file, with ``dotted.key=value`` overrides applied (``sim run --set``).
 
         Raises:
-            ROSConfigError: Unreadable file or a bad field (named, with the fix).
+            ROSConfigError: Unreadable file, a malformed override, or a bad field (named, with the fix).
         """
         from openral_core.config import load_model_yaml  # noqa: PLC0415
 
-        return load_model_yaml(cls, path, field="--config")
+        return load_model_yaml(cls, path, field="--config", overrides=overrides)
 
 
 class PrivilegedState(BaseModel):

@@ -107,6 +107,23 @@ def test_a_wrong_scene_file_exits_2_with_one_line_naming_the_field(tmp_path: Pat
     assert field in lines[0]
 
 
+def test_set_overrides_a_scene_field_and_a_wrong_one_is_named_like_the_files_own() -> None:
+    result = CliRunner().invoke(
+        cli,
+        ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "zero", "--n-episodes", "2", "--json",
+         "--set", "max_steps=3", "--set", "end_on_success=false"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert [e["steps"] for e in report["episodes"]] == [3, 3]  # the scene says 60
+    wrong = CliRunner().invoke(
+        cli, ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "zero", "--set", "virtual_latency.tick=2"]
+    )
+    assert wrong.exit_code == 2
+    assert "virtual_latency.tick: unknown key 'tick'; allowed keys: jitter_ticks, ticks" in wrong.output
+    assert "did you mean 'ticks'?" in wrong.output
+
+
 def test_bad_skill_params_exit_2_naming_the_option() -> None:
     result = CliRunner().invoke(
         cli, ["sim", "run", "--config", str(MOCK_SCENE), "--skill", "zero", "--skill-params", "{nope"]

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from openral_core import RobotEnvironment, ROSConfigError, SensorReaderBackend
-from openral_core.config import validate_model
+from openral_core.config import apply_overrides, validate_model
 
 MINIMAL = """\
 hal:
@@ -157,3 +157,34 @@ def test_validate_model_without_a_file() -> None:
     assert info.value.field == "vla.parms"
     assert "[in " not in str(info.value)
     assert info.value.hint == "did you mean 'params'?"
+
+
+def test_overrides_set_nested_keys_as_yaml_values_and_leave_the_data_as_it_was() -> None:
+    data = {"name": "s", "executor": {"seam": "replace"}}
+    changed = apply_overrides(
+        data, ["executor.indexing=stale_start", "virtual_latency.ticks=3", "rate_hz=null", "cameras=[]", "name=a=b"]
+    )
+    assert changed == {
+        "name": "a=b",  # the value is everything after the first '='
+        "executor": {"seam": "replace", "indexing": "stale_start"},
+        "virtual_latency": {"ticks": 3},
+        "rate_hz": None,
+        "cameras": [],
+    }
+    assert data == {"name": "s", "executor": {"seam": "replace"}}
+
+
+@pytest.mark.parametrize(
+    ("assignment", "words"),
+    [
+        ("virtual_latency", "is not KEY=VALUE"),
+        ("executor..seam=crossfade", "is not KEY=VALUE"),
+        ("=3", "is not KEY=VALUE"),
+        ("name.first=x", "name is 's', not a mapping"),
+        ("executor={a: [", "the value is not YAML"),
+    ],
+)
+def test_a_malformed_override_is_refused_naming_the_option(assignment: str, words: str) -> None:
+    with pytest.raises(ROSConfigError, match=words) as caught:
+        apply_overrides({"name": "s"}, [assignment])
+    assert caught.value.field == "--set"
