@@ -415,8 +415,11 @@ class ChunkedExecutor:
     def _take_arrivals(self, tick_idx: int) -> None:
         while self._done:
             request = self._done[0]
-            if request.ready_tick is not None and request.ready_tick > tick_idx:
-                return  # virtual latency: not usable yet
+            if request.epoch == self._epoch and request.ready_tick is not None and request.ready_tick > tick_idx:
+                # Virtual latency: not usable yet (a given-up request keeps the worker until then, as
+                # on a robot). One of an episode before is dropped at once: an episode's course
+                # depends on its own seed, never on how the one before it ended.
+                return
             self._done.popleft()
             if request.request_id in self._abandoned:
                 self._abandoned.discard(request.request_id)  # given up on at its deadline: dropped by id

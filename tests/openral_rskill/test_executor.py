@@ -229,6 +229,20 @@ def test_each_decision_names_the_chunk_its_row_came_from_and_a_held_row_keeps_it
     assert [d.action.first[0] for d in decisions if d.action is not None] == [0, 1, 200, 201, 202, 202, 202, 202]
 
 
+def test_a_new_episodes_first_chunk_is_not_held_up_by_a_slow_one_of_the_episode_before() -> None:
+    policy = GatedPolicy(rows=3, gated=False)
+    # Episode 1: its second request (tick 2) takes 20 ticks, and the episode ends before it is usable.
+    ex = executor(policy, ExecutorConfig(margin_ticks=0), virtual_delay=lambda request: 0 if request == 0 else 20)
+    assert [ex.step(t, world(t)).outcome for t in range(4)] == [Outcome.ACTION] * 3 + [Outcome.HOLD]
+    ex.reset()
+    ex.virtual_delay = lambda _request: 0  # episode 2's delays, as a simulation sets them at its reset
+    decision = ex.step(4, world(4))
+    assert decision.outcome is Outcome.ACTION  # its own chunk, at once: not after episode 1's slow one
+    assert decision.action is not None
+    assert decision.action.first[0] == 400
+    assert ex.stats.results_stale_epoch == 1
+
+
 def test_ensemble_weights_older_predictions_first() -> None:
     policy = GatedPolicy(rows=4, gated=False)
     ex = executor(
