@@ -77,6 +77,12 @@ def _run(latency: VirtualLatency, config: ExecutorConfig | None = None) -> tuple
         executor=config or ExecutorConfig(),
     )
     skill = ChunkOfSteps(env.spec.action_manifest("mock"), 5)
+    runner, steps = _run_skill(env, scene, skill)
+    return runner, steps, skill
+
+
+def _run_skill(env: MockReachEnv, scene: SimEnvironment, skill: RSkillBase) -> tuple[SimRunner, Steps]:
+    """Run ``skill`` on the scene's episodes, every tick's result kept."""
     runner = SimRunner(env=env, scene=scene, skill=skill)
     steps = Steps()
     runner.observers.append(steps)
@@ -87,7 +93,7 @@ def _run(latency: VirtualLatency, config: ExecutorConfig | None = None) -> tuple
         runner.run(max_ticks=100)
     finally:
         runner.deactivate()
-    return runner, steps, skill
+    return runner, steps
 
 
 def test_rows_arrive_after_the_virtual_delay_and_the_robot_holds_until_then() -> None:
@@ -155,16 +161,7 @@ def test_a_request_reads_the_commands_sent_after_the_safety_clamp_by_tick() -> N
         virtual_latency=VirtualLatency(ticks=1), executor=ExecutorConfig(margin_ticks=0),
     )  # fmt: skip
     skill = OvershootingChunks(env.spec.action_manifest("mock"))
-    runner = SimRunner(env=env, scene=scene, skill=skill)
-    steps = Steps()
-    runner.observers.append(steps)
-    skill.configure()
-    skill.activate()
-    runner.activate()
-    try:
-        runner.run(max_ticks=100)
-    finally:
-        runner.deactivate()
+    _, steps = _run_skill(env, scene, skill)
     sent = {t.tick_idx: t.sent_action for t in steps.ticks if t.sent_action is not None}
     assert any(t.requested_action != t.sent_action for t in steps.ticks if t.sent_action is not None)  # clamped
     episode_of = {t.tick_idx: t.episode_idx for t in steps.ticks}
