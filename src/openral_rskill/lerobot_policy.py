@@ -141,6 +141,8 @@ class LeRobotPolicySkill(ChunkingSkillBase):
             )
         self._policy: Any = None
         self._clipped_logged = False
+        self._limits = (np.array([j.lower for j in robot.joints]), np.array([j.upper for j in robot.joints]))
+        """The robot's joint limits: a committed row beyond them is sent clamped, and is fed as sent."""
         self._info = RSkillInfo(
             skill_id=SKILL_ID,
             name=f"LeRobot {self.checkpoint.policy_type} {self.checkpoint.path.name}",
@@ -261,7 +263,8 @@ class LeRobotPolicySkill(ChunkingSkillBase):
                 policy=self.checkpoint.policy_type,
                 hint="the executor skips the rows beyond it; train with a longer prefix to condition on them",
             )
-        committed = committed_rows(request.prefix, delay, spec, self._start_row(request))
+        # The buffered rows as the envelope will send them: a policy fed rows past the limits runs away.
+        committed = np.clip(committed_rows(request.prefix, delay, spec, self._start_row(request)), *self._limits)
         past = request.past[len(request.past) - spec.past :] if spec.past else request.past[:0]
         prefix = PolicyPrefix(self._policy_units(committed), self._policy_units(past.reshape(-1, len(committed[0]))))
         return committed, prefix

@@ -206,9 +206,21 @@ def test_the_rows_for_committed_ticks_are_the_prefix_and_the_model_saw_it_normal
     np.testing.assert_allclose(seen[PAST : PAST + 2], _normalised(prefix), atol=1e-5)
 
 
+def test_committed_rows_past_the_joint_limits_are_fed_and_returned_as_the_envelope_sends_them(
+    skill: tuple[LeRobotPolicySkill, Spy],
+) -> None:
+    policy, spy = skill
+    upper = np.array([joint.upper for joint in SO101.joints])
+    prefix = np.array([upper + 0.5, upper - 0.01])  # the first row beyond every limit, the second inside
+    chunk = policy.step_chunk(ChunkRequest(_world(np.zeros(DIMS)), obs_tick=5, prefix=prefix, inference_delay=2))
+    np.testing.assert_array_equal(chunk[:2], [upper, upper - 0.01])
+    seen = spy.batch["inference_action"][0].numpy()
+    np.testing.assert_allclose(seen[PAST : PAST + 2], _normalised(np.array([upper, upper - 0.01])), atol=1e-5)
+
+
 def test_an_episode_starts_from_the_measured_joints(skill: tuple[LeRobotPolicySkill, Spy]) -> None:
     policy, spy = skill
-    measured = np.linspace(0.2, -0.2, DIMS)
+    measured = np.linspace(0.2, -0.15, DIMS)  # inside every limit (the gripper opens from -0.17)
     chunk = policy.step_chunk(ChunkRequest(_world(measured), obs_tick=0))  # no prefix, no past, no delay
     assert chunk.shape == (1 + ROWS, DIMS)
     np.testing.assert_allclose(chunk[0], measured, atol=1e-12)  # row 0, for the observation's tick: where it is
