@@ -20,9 +20,13 @@ def emu() -> Iterator[ServoBusEmulator]:
 
 @pytest.fixture
 def bus(emu: ServoBusEmulator) -> Iterator[object]:
-    """openral's Feetech bus client on :func:`emu`'s port (20 ms per attempt, two retries)."""
+    """openral's Feetech bus client on :func:`emu`'s port (100 ms per attempt, two retries).
+
+    A present servo answers in well under a millisecond; the deadline is for a loaded test machine,
+    where the emulator's thread may wait tens of milliseconds for a CPU.
+    """
     pytest.importorskip("serial", reason="needs the 'serial' extra")
     from openral_hal.feetech.bus import FeetechBus  # noqa: PLC0415  (pyserial: the 'serial' extra)
 
-    with FeetechBus(emu.port, timeout_s=0.02, retries=2) as client:
+    with FeetechBus(emu.port, timeout_s=0.1, retries=2) as client:
         yield client
