@@ -9,10 +9,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
 from pydantic import BaseModel, ValidationError
 
-from openral_core.config_files import CONFIG_DIR, is_plain, load_config_file
+from openral_core.config_files import CONFIG_DIR, is_plain, load_config_file, parse_config_text
 from openral_core.errors import ROSConfigError
 
 ModelT = TypeVar("ModelT", bound=BaseModel)
@@ -59,13 +58,13 @@ def apply_overrides(data: dict[str, Any], assignments: Sequence[str], *, option:
             raise ROSConfigError(
                 f"{option} {assignment!r} is not KEY=VALUE", field=option, hint="e.g. --set virtual_latency.ticks=2"
             )
-        try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ROSConfigError(f"{option} {assignment!r}: the value is not YAML ({exc})", field=option) from exc
+        # Read as a file's value is: bounded, no duplicate keys, plain data only.
+        value = parse_config_text(text, source=f"{option} {assignment!r}", field=option)
         target = result
         for depth, part in enumerate(parts[:-1]):
-            child = target.setdefault(part, {})
+            child = target.get(part)
+            if child is None:  # absent, or null in the file: the assignment gives it its keys
+                child = target[part] = {}
             if not isinstance(child, dict):
                 above = ".".join(parts[: depth + 1])
                 raise ROSConfigError(

@@ -160,7 +160,7 @@ def test_validate_model_without_a_file() -> None:
 
 
 def test_overrides_set_nested_keys_as_yaml_values_and_leave_the_data_as_it_was() -> None:
-    data = {"name": "s", "executor": {"seam": "replace"}}
+    data = {"name": "s", "executor": {"seam": "replace"}, "virtual_latency": None}
     changed = apply_overrides(
         data, ["executor.indexing=stale_start", "virtual_latency.ticks=3", "rate_hz=null", "cameras=[]", "name=a=b"]
     )
@@ -171,7 +171,7 @@ def test_overrides_set_nested_keys_as_yaml_values_and_leave_the_data_as_it_was()
         "rate_hz": None,
         "cameras": [],
     }
-    assert data == {"name": "s", "executor": {"seam": "replace"}}
+    assert data == {"name": "s", "executor": {"seam": "replace"}, "virtual_latency": None}
 
 
 @pytest.mark.parametrize(
@@ -181,7 +181,8 @@ def test_overrides_set_nested_keys_as_yaml_values_and_leave_the_data_as_it_was()
         ("executor..seam=crossfade", "is not KEY=VALUE"),
         ("=3", "is not KEY=VALUE"),
         ("name.first=x", "name is 's', not a mapping"),
-        ("executor={a: [", "the value is not YAML"),
+        ("executor={a: [", "--set 'executor={a: \\['"),
+        ("executor={a: 1, a: 2}", "duplicate key"),
     ],
 )
 def test_a_malformed_override_is_refused_naming_the_option(assignment: str, words: str) -> None:
