@@ -101,8 +101,11 @@ def test_a_worker_process_runs_its_units_with_one_blas_thread_and_unlimited_ones
             assert len(evaluator.in_worker(OS_THREADS)) > pinned
 
 
+TORCH_REASON = "needs the 'lerobot' extra, which installs on Python 3.12 or newer (lerobot 0.6)"
+
+
 def test_torch_in_a_worker_process_uses_the_threads_asked_for(unlimited: None) -> None:
-    torch = pytest.importorskip("torch", reason="needs the 'lerobot' extra (Python 3.12 or newer)")
+    torch = pytest.importorskip("torch", reason=TORCH_REASON)
     with Evaluator(workers=2) as evaluator:
         assert evaluator.in_worker(torch.get_num_threads) == 1
     with Evaluator(workers=1, threads_per_worker=2) as evaluator:  # one worker process, where the count applies
