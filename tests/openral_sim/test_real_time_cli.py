@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from openral_cli.main import cli
@@ -62,3 +63,32 @@ def test_benchmark_run_in_real_time_names_the_machine_and_refuses_to_pair_with_a
     refused = CliRunner().invoke(cli, ["benchmark", "compare", str(out["virtual"]), str(out["measured"])])
     assert refused.exit_code != 0
     assert "A's row ran with virtual latency and B's with measured" in refused.output
+
+
+PICK_SCENE = ROOT / "scenes" / "sim" / "so101_pick.yaml"
+PICK_POLICY = ROOT / "models" / "so101_pick_mlp.onnx"
+
+
+@pytest.mark.slow
+def test_a_served_policy_in_real_time_is_paced_and_every_chunk_comes_from_the_server(tmp_path: Path) -> None:
+    scene = tmp_path / "pick.yaml"
+    scene.write_text(PICK_SCENE.read_text(encoding="utf-8").replace("max_steps: 100", "max_steps: 15"))
+    suite = tmp_path / "suite.yaml"
+    suite.write_text(
+        f"name: pick\nruns:\n  - {{scene: {scene}, skill: onnx_policy, skill_params: {{model: {PICK_POLICY}}}, "
+        "n_episodes: 2}\n"
+    )
+    out = tmp_path / "served.json"
+    args = ["benchmark", "run", "--config", str(suite), "--workers", "2", "--serve", "--real-time", "--out", str(out)]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    document = json.loads(out.read_text())
+    (row,) = document["results"]
+    assert row["timing"] == "measured"
+    assert document["provenance"]["real_time"]["rows"] == [row["label"]]
+    assert document["provenance"]["served"]["max_batch"] == 2
+    assert row["served"]["served"] >= 2  # the first chunk of each episode, at least, came from the one server
+    for episode in row["episodes"]:
+        live = episode["real_time"]
+        assert live["policy_ticks"] + live["held_slots"] == episode["steps"]
+        assert live["wall_s"] >= episode["steps"] * 0.9 / episode["control_hz"]  # paced at the scene's rate

@@ -23,6 +23,7 @@ from typing import Any, Final
 import numpy as np
 
 from openral_core import ROSConfigError
+from openral_core.config_files import read_config_file
 from openral_sim.benchmark.paired import PairedTable, mcnemar_exact_p, newcombe_paired_interval
 from openral_sim.smoothness import METRICS
 
@@ -34,16 +35,20 @@ PAIRED_FIELDS: Final = ("env", "env_id")
 """What a row of A and its row of B must share besides the scene and the seeds."""
 LIMIT_FIELDS: Final = ("max_steps", "step_limit")
 """The episode length and its named convention: compared where both rows carry them (older reports do not)."""
+MAX_REPORT_BYTES: Final = 256 * 2**20
+"""A report of many thousand episodes is a few megabytes; far past this it is not one."""
 
 
 def load_report(path: Path, *, field: str) -> dict[str, Any]:
     """A ``benchmark run --out`` report, with every completed row's episodes (seed and outcome).
 
     Raises:
-        ROSConfigError: Unreadable, not JSON, or without per-episode seeds (one line, naming ``field``).
+        ROSConfigError: Missing, not a regular file, over :data:`MAX_REPORT_BYTES`, not JSON, or
+            without per-episode seeds (one line, naming ``field``).
     """
+    text = read_config_file(path, field=field, max_bytes=MAX_REPORT_BYTES)
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
+        document = json.loads(text)
         rows = document["results"]
         for row in rows:
             if row.get("status") == "completed":
@@ -54,7 +59,7 @@ def load_report(path: Path, *, field: str) -> dict[str, Any]:
                     if steps is not None and not isinstance(steps, int):
                         raise TypeError(f"steps_to_success {steps!r} is not a whole number")
                     _check_smoothness(episode.get("smoothness"))
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ROSConfigError(
             f"{path} is not a benchmark report with per-episode seeds and outcomes ({type(exc).__name__}: {exc})",
             field=field,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -246,3 +247,12 @@ def test_the_html_page_shows_a_and_b_side_by_side_and_escapes_what_users_named(t
         assert text in page, text
     assert "<script" not in page
     assert "http" not in page, "the page fetches nothing"
+
+
+def test_a_report_that_is_missing_or_no_regular_file_is_refused_without_waiting(tmp_path: Path) -> None:
+    with pytest.raises(ROSConfigError, match=r"^B: file not found"):
+        load_report(tmp_path / "absent.json", field="B")
+    pipe = tmp_path / "pipe.json"
+    os.mkfifo(pipe)  # nobody writes to it: reading it as a file would wait for ever
+    with pytest.raises(ROSConfigError, match=r"^B: .*FIFO"):
+        load_report(pipe, field="B")
