@@ -177,7 +177,11 @@ class _Link:
         # A server that stops reading must not wedge a send: each write to the socket gives up after the deadline.
         seconds = self.params.deadline_ms / 1000.0
         timeval = struct.pack("ll", int(seconds), int((seconds % 1.0) * 1e6))
-        ws.socket.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, timeval)
+        try:
+            ws.socket.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, timeval)
+        except OSError as exc:  # the server closed at once, and the client's reader closed the socket
+            self.close()
+            raise OpenpiUnavailable(f"the openpi server at {self.uri} closed the connection at once: {exc}") from None
         try:
             metadata = self._decode(self._receive(timeout))
         except BaseException:

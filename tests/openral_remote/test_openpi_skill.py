@@ -229,6 +229,22 @@ def test_a_server_back_with_another_model_is_refused_and_a_restart_is_taken_back
         skill.shutdown()
 
 
+def test_a_server_that_drops_each_connection_at_once_is_unavailable_not_a_crash() -> None:
+    """Whether the client's reader has already closed the socket or not, the answer is one config error."""
+
+    def drop(ws: ServerConnection) -> None:
+        ws.socket.shutdown(socket.SHUT_RDWR)
+
+    with serve(drop, "127.0.0.1", 0) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        port = server.socket.getsockname()[1]
+        for rows in (None, 8) * 10:  # asked for its rows at start-up, or only when configured
+            fixed = {} if rows is None else {"rows": rows, "representation": "absolute"}
+            with pytest.raises((ROSConfigError, ROSSkillError), match=r"vla\.params\.host: the openpi server at ws://"):
+                _skill(port, connect_timeout_s=2, **fixed).configure()
+        server.shutdown()
+
+
 def test_a_silent_server_is_late_and_the_link_is_dropped(fake_server) -> None:  # type: ignore[no-untyped-def]
     server = fake_server({"action_horizon": 8, "action_dim": 6}, lambda _obs: None)
     skill = _active(_skill(server.port, rows=8, representation="absolute", deadline_ms=200, reconnect_s=60))

@@ -299,7 +299,6 @@ def test_rendering_does_not_stall_physics(twin: MujocoTwinHAL, camera: MujocoCam
     # cores it stayed within 1 %. The lock is held for tens of microseconds per frame.
     assert ratio == pytest.approx(1.0, rel=0.05)
     assert twin.skipped_s == skipped0
-    assert report["lock_us_max"] < 2000
 
 
 def test_slow_rendering_skips_slots_and_reports_the_delivered_rate(
@@ -321,6 +320,8 @@ def test_slow_rendering_skips_slots_and_reports_the_delivered_rate(
     assert report["skipped"] >= 3 * (latest.seq - start.seq)
     assert 0 < report["delivered_fps"] < 8
     assert report["render_ms"] > 100
+    # The twin's lock covers the state copy only (tens of microseconds), never the render.
+    assert report["lock_us_max"] < 100_000
 
 
 def test_a_render_failure_is_latched_and_raised_on_read(
