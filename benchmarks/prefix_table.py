@@ -12,7 +12,8 @@ virtual_latency.ticks=d``), so every number reproduces on any machine:
   committed for those ticks and the last commands sent.
 
 Each cell is the success rate with its Wilson 95 % interval; the smoothness columns are the seam
-jump p95 over episodes (``smoothness.seam_jump_max.p95``) and the mean jerk RMS. Then, for each
+jump p95 over episodes (``smoothness.seam_jump_max.p95``), the mean jerk RMS of the commands and the
+mean jerk RMS of the end effector's measured path (m/s³). Then, for each
 delay, the paired comparisons on the same seeds: tick-indexed against stale start, and act-smooth
 against tick-indexed ACT (Newcombe's interval, exact McNemar). ``--real-time`` adds a column in
 real-time mode (``--real-time``: wall-clock paced, machine-dependent).
@@ -83,16 +84,27 @@ def _smooth(report: dict[str, Any]) -> str:
     smoothness = report.get("smoothness") or {}
     seam = (smoothness.get("seam_jump_max") or {}).get("p95")
     jerk = (smoothness.get("jerk_rms") or {}).get("mean")
-    return f"{'—' if seam is None else f'{seam:.3f}'} / {'—' if jerk is None else f'{jerk:.0f}'}"
+    ee_jerk = (smoothness.get("ee_jerk_rms") or {}).get("mean")
+    return " / ".join(
+        "—" if value is None else f"{value:{spec}}" for value, spec in ((seam, ".3f"), (jerk, ".0f"), (ee_jerk, ".2f"))
+    )
 
 
 def _paired(a: dict[str, Any], b: dict[str, Any]) -> str:
     row = compare_rows(_as_row(a), _as_row(b))
     low, high = row["difference_pp_ci95"]
     discordant = row["discordant"]
+    ee_jerk = (row.get("smoothness") or {}).get("ee_jerk_rms")
+    measured = (
+        ""
+        if ee_jerk is None
+        else "; end-effector jerk {:+.2f} m/s³ (95 % CI {:+.2f} to {:+.2f})".format(
+            ee_jerk["mean_difference"], *ee_jerk["mean_difference_ci95"]
+        )
+    )
     return (
         f"{row['difference_pp']:+.0f} pp (95 % CI {low:+.0f} to {high:+.0f}), McNemar p {row['mcnemar_p']:.2g} "
-        f"({discordant['only_a']} only A, {discordant['only_b']} only B)"
+        f"({discordant['only_a']} only A, {discordant['only_b']} only B){measured}"
     )
 
 
@@ -126,7 +138,8 @@ def main() -> None:
     print(f"({time.perf_counter() - started:.0f} s, {args.episodes} episodes a cell, seeds from 0)\n")
 
     heads = [REAL_TIME if c == REAL_TIME else f"d = {c}" for c in columns]
-    print("| policy / executor | " + " | ".join(heads) + " | seam jump p95 / jerk RMS, " + " · ".join(heads) + " |")
+    smooth_head = "seam jump p95 / jerk RMS / end-effector jerk RMS (m/s³), " + " · ".join(heads)
+    print("| policy / executor | " + " | ".join(heads) + f" | {smooth_head} |")
     print("|---|" + "---|" * (len(columns) + 1))
     for name in policies:
         cells = [_cell(reports[name, c]) for c in columns]

@@ -165,6 +165,7 @@ class EpisodeSmoothness(BaseModel):
     seam_jump_p95: float | None = Field(default=None, description="95th percentile of the changes at seams.")
     reversals_per_s: float | None = Field(default=None, description="Direction reversals per simulated second.")
     ee_path_length_m: float | None = Field(default=None, description="Path length of the end effector(s), metres.")
+    ee_jerk_rms: float | None = Field(default=None, description="RMS jerk of the end effector's measured path, m/s³.")
 
 
 class RealTimeStats(BaseModel):

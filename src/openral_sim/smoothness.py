@@ -24,6 +24,12 @@ the moves, the position they command. With ``dt = 1 / control_hz``:
 * ``ee_path_length_m`` (metres): the distance the end effector travelled, from its position
   after the reset through each step's, summed over effectors; ``None`` where the env reports no
   end effector (:class:`~openral_sim.env.EndEffectorSensing`).
+* ``ee_jerk_rms`` (m/s³): the jerk of the end effector's *measured* path, as the simulator moved
+  it: the third finite difference of each effector's position over ``dt³``, its Euclidean norm,
+  RMS over steps and effectors; ``None`` with fewer than four positions or no end effector. Unlike
+  the metrics of the commanded motion it is in physical units whatever the action space (joint
+  targets, end-effector moves), so two policies driving one robot through different action
+  representations compare on it.
 
 Across a row's episodes, each metric's mean and p95 (over the episodes that have a value).
 """
@@ -48,6 +54,7 @@ METRICS: Final = {
     "seam_jump_p95": ("seam jump p95", "action units"),
     "reversals_per_s": ("reversals", "per s"),
     "ee_path_length_m": ("end-effector path", "m"),
+    "ee_jerk_rms": ("end-effector jerk RMS", "m/s³"),
 }
 """The per-episode metrics a row summarises and a comparison pairs (name: how a person reads it, its unit)."""
 
@@ -118,6 +125,7 @@ def smoothness(
         seam_jump_p95=float(np.percentile(jumps, 95)) if len(jumps) else None,
         reversals_per_s=reversals_per_s(commands, geometry),
         ee_path_length_m=None if positions is None else path_length(positions),
+        ee_jerk_rms=None if positions is None else path_jerk_rms(positions, geometry.control_hz),
     )
 
 
@@ -163,6 +171,14 @@ def path_length(positions: np.ndarray) -> float:
     """The distance travelled through ``positions`` (``(steps, [effectors,] 3)``), summed over effectors."""
     steps = np.diff(positions.reshape(len(positions), -1, 3), axis=0)
     return float(np.linalg.norm(steps, axis=-1).sum())
+
+
+def path_jerk_rms(positions: np.ndarray, control_hz: float) -> float | None:
+    """RMS over steps and effectors of the norm of ``positions``' third finite difference over ``dt³`` (m/s³)."""
+    if len(positions) < 4:
+        return None
+    jerk = np.diff(positions.reshape(len(positions), -1, 3), n=3, axis=0) * control_hz**3
+    return float(np.sqrt(np.mean(np.sum(jerk**2, axis=-1))))
 
 
 def summarize(episodes: Sequence[EpisodeResult]) -> dict[str, Any] | None:

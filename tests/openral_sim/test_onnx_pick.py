@@ -84,6 +84,12 @@ def test_seams_fall_where_the_executed_rows_of_each_chunk_run_out() -> None:
         sensed = float(np.linalg.norm(np.diff(ee, axis=0), axis=1).sum())
         assert smooth.ee_path_length_m is not None
         assert sensed <= smooth.ee_path_length_m <= sensed + 0.05
+        # Its jerk: the recorded path is the sensed one and one more position, so one more jerk term,
+        # made of three moves of a step (a step moves the effector by a few centimetres).
+        sensed_jerk = np.linalg.norm(np.diff(ee, n=3, axis=0) * 10.0**3, axis=1)
+        assert smooth.ee_jerk_rms is not None
+        assert smooth.ee_jerk_rms**2 * (len(ee) + 1 - 3) >= float(np.sum(sensed_jerk**2)) * (1 - 1e-9)
+        assert smooth.ee_jerk_rms**2 * (len(ee) + 1 - 3) <= float(np.sum(sensed_jerk**2)) + (0.25 * 10.0**3) ** 2
         assert episode.control_hz == pytest.approx(10.0)
 
 

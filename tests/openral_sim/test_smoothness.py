@@ -121,6 +121,19 @@ def test_the_path_length_sums_every_effector_from_the_reset_on() -> None:
     assert CommandLog().metrics(absolute()).ee_path_length_m is None  # no end effector reported
 
 
+def test_the_end_effectors_jerk_is_the_third_derivative_of_its_measured_path() -> None:
+    log = CommandLog()
+    for t in np.arange(12) / HZ:
+        # The first effector moves x = 0.5 t³ (jerk 3 m/s³ along x), the second stands still.
+        log.position(np.array([[0.5 * t**3, 0.2, 0.1], [0.3, 0.0, 0.0]]))
+        log.command(np.zeros(1), None, held=True)
+    assert log.metrics(absolute()).ee_jerk_rms == pytest.approx(np.sqrt(3.0**2 / 2))
+    short = CommandLog()
+    for k in range(3):
+        short.position(np.array([0.1 * k, 0.0, 0.0]))
+    assert short.metrics(absolute()).ee_jerk_rms is None  # three positions have no third difference
+
+
 def test_short_episodes_say_what_cannot_be_measured() -> None:
     result = metrics(np.array([0.0, 1.0, 2.0]), absolute())
     assert result.jerk_rms is None  # a third difference needs four commands
