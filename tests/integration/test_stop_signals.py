@@ -187,7 +187,8 @@ def test_signal_while_closing_does_not_skip_torque_off(tmp_path: Path, bus, depl
 
 
 def test_two_more_signals_within_a_second_force_torque_off_and_exit(tmp_path: Path, bus, deploy_process) -> None:
-    # Slow transactions (1 s per attempt, 10 retries): once the replies stop, a tick is stuck for 11 s.
+    # Slow transactions (1 s per attempt, 10 retries: the most a deployment allows): once the replies
+    # stop, a tick is stuck for 11 s.
     path = _deployment(tmp_path, bus, timeout_s=1.0, retries=10)
     goals = TickGoals(bus)
     proc = deploy_process(["deploy", "--config", str(path), "--json"], through_uv=True)
@@ -195,11 +196,12 @@ def test_two_more_signals_within_a_second_force_torque_off_and_exit(tmp_path: Pa
     bus.mute = True  # the reply line breaks: the tick thread waits in read_state
     started = time.monotonic()
     # The user hammers Ctrl-C (a signal every 0.35 s) until the process is gone.
-    while proc.proc.poll() is None and time.monotonic() - started < 8.0:
+    while proc.proc.poll() is None and time.monotonic() - started < 10.0:
         proc.signal_group(signal.SIGTERM)
         time.sleep(0.35)
     code, _stdout = proc.finish(timeout=30)
-    assert time.monotonic() - started < 3.0, "the escape is bounded, not the 11 s stuck transaction"
+    # About 1.5 s (two signals within a second, then at most 1 s for the emergency actions).
+    assert time.monotonic() - started < 8.0, "the escape is bounded, not the 11 s stuck transaction"
     assert code == 143, proc.stderr
     assert "forced stop" in proc.stderr
     assert _all_limp(bus), "the broadcast torque-off goes out even with the bus stuck"

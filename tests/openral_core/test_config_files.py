@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -155,10 +154,8 @@ def test_merge_key_bomb_is_refused_quickly() -> None:
         lines.append(f"a{level}: &a{level} {{<<: [{', '.join([prev] * 9)}]}}")
     bomb = "\n".join(lines) + "\n"
     assert len(bomb) < 2000
-    started = time.perf_counter()
-    data = parse_config_text(bomb, source="f")  # merged keys are kept once: nothing explodes
-    assert time.perf_counter() - started < 2.0
-    assert data["a29"] == {"k": "v"}
+    data = _finishes_quickly(lambda: parse_config_text(bomb, source="f"))  # merged keys are kept once
+    assert data == {f"a{level}": {"k": "v"} for level in range(30)}
 
 
 def test_alias_bomb_is_refused_by_the_expanded_size() -> None:

@@ -157,21 +157,25 @@ def test_servo_timeout_mid_run_names_port_and_joints(emu: ServoBusEmulator, cal_
         hal.disconnect()
 
 
-def test_estop_holds_present_position(emu: ServoBusEmulator, cal_file: Path) -> None:
-    hal = _hal(emu, cal_file)
-    hal.connect()
-    try:
-        hal.send_action(_action(shoulder_pan=1.5))
-        time.sleep(0.05)
-        hal.estop()
-        assert _eventually(lambda: emu.goals()[1] < 2048 + round(1.5 / RAD_PER_TICK))
-        held = emu.goals()[1]
-        assert held > 2048
-        time.sleep(0.05)
-        assert abs(emu.positions()[1] - held) <= 1
-        assert all(emu.torque().values())
-    finally:
-        hal.disconnect()
+def test_estop_holds_present_position(cal_file: Path) -> None:
+    target = 2048 + round(1.5 / RAD_PER_TICK)
+    # A tenth of the servo's speed: about 3 s to the target, so the stop lands mid-motion however loaded.
+    with ServoBusEmulator([i for i in IDS if i is not None], speed_ticks_s=300.0) as emu:
+        hal = _hal(emu, cal_file)
+        hal.connect()
+        try:
+            hal.send_action(_action(shoulder_pan=1.5))
+            assert _eventually(lambda: emu.positions()[1] > 2048, timeout_s=5.0)  # under way
+            hal.estop()
+            assert _eventually(lambda: emu.goals()[1] < target)
+            held = emu.goals()[1]
+            assert held > 2048
+            assert _eventually(lambda: abs(emu.positions()[1] - held) <= 1)  # it stops there
+            time.sleep(0.05)
+            assert abs(emu.positions()[1] - held) <= 1  # and stays
+            assert all(emu.torque().values())
+        finally:
+            hal.disconnect()
 
 
 def test_estop_torque_off(emu: ServoBusEmulator, cal_file: Path) -> None:
@@ -190,8 +194,7 @@ def test_emulate_param_runs_without_an_arm() -> None:
     try:
         assert hal.emulator is not None
         hal.send_action(_action(wrist_roll=0.1))
-        time.sleep(0.08)
-        assert hal.read_state().positions[4] == pytest.approx(0.1, abs=RAD_PER_TICK)
+        assert _eventually(lambda: abs(hal.read_state().positions[4] - 0.1) <= RAD_PER_TICK, timeout_s=5.0)
     finally:
         hal.disconnect()
     assert hal.emulator is None

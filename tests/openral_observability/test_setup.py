@@ -88,7 +88,7 @@ with tracer().start_as_current_span("outer") as span:
     metrics.record_histogram_ms(semconv.METRIC_TICK_DURATION, 1.5, {semconv.ATTR_SKILL_ID: "probe"})
 ctx = span.get_span_context()
 print(f"{ctx.trace_id:032x} {ctx.span_id:016x}")
-print(handle.shutdown(timeout_s=10))
+print(handle.shutdown(timeout_s=30))  # returns once flushed; the room is for a loaded machine
 """
 
 
@@ -120,6 +120,7 @@ def test_environment_configures_export_and_a_zero_ratio_samples_nothing() -> Non
         env = {"OTEL_EXPORTER_OTLP_ENDPOINT": receiver.endpoint, "OTEL_SERVICE_NAME": "arm-7"}
         proc = run_python(EXPORT, "ratio=0", env=env)
         assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.split()[-1] == "True", proc.stdout + proc.stderr  # everything flushed
         assert receiver.spans() == []
         assert any(m.name == "openral.tick.duration" for m in receiver.metrics())  # metrics are not sampled
         proc = run_python(EXPORT, env=env)
@@ -185,4 +186,4 @@ def test_shutdown_is_bounded_when_the_collector_is_down() -> None:
     ok, took = proc.stdout.splitlines()[-1].split()  # unconfigured structlog warns on stdout first
     assert ok == "False"
     assert "timed out" in proc.stdout
-    assert float(took) < 2.0
+    assert float(took) < 5.0  # the 0.5 s asked for; the exporter's own retries would take 10 s or more

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import threading
-import time
 
 from opentelemetry import trace
 
@@ -18,10 +17,12 @@ class StallingSink:
     def __init__(self) -> None:
         self.release = threading.Event()
         self.started = threading.Event()
+        self.finished = threading.Event()
 
     def export(self, spans: list[SpanRecord], samples: list[MetricSample]) -> None:
         self.started.set()
-        self.release.wait(10)
+        self.release.wait(60)
+        self.finished.set()
 
     def flush(self, *, force: bool) -> None:
         pass
@@ -41,11 +42,12 @@ def test_a_stalled_worker_never_blocks_submit_and_counts_drops() -> None:
     try:
         worker.submit(_batch())
         assert sink.started.wait(5)  # the worker is now stuck on the first batch
-        start = time.perf_counter()
-        for _ in range(1000):
-            worker.submit(_batch())
-        elapsed_s = time.perf_counter() - start
-        assert elapsed_s < 0.5  # about a microsecond each; nothing waited on the worker
+        batches = [_batch() for _ in range(1000)]
+        submitter = threading.Thread(target=lambda: [worker.submit(batch) for batch in batches])
+        submitter.start()
+        submitter.join(30)  # about a microsecond each; a submit that waits for room waits for the release
+        assert not submitter.is_alive(), "submit waited on the stalled worker"
+        assert not sink.finished.is_set()  # every submit returned while the worker was still stuck
         assert worker.dropped == 1000 - 8
         assert not worker.flush(timeout_s=0.05)  # still stuck: flush gives up, it does not hang
     finally:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import ssl
 import threading
-import time
 import urllib.request
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -116,18 +115,31 @@ def _world(q: tuple[float, float]) -> WorldState:
     return WorldState(stamp_ns=1, joint_state=JointState(names=NAMES, positions=list(q)))
 
 
-def test_healthz_and_other_clients_are_answered_while_an_inference_runs(serve: Serve) -> None:
-    server, built = serve(delay_s=3.0)
-    with _connect(server) as slow:
-        slow.recv(timeout=20)
-        slow.send(_obs((0.0, 0.0)))
-        assert wait_for(lambda: bool(built[0].batch_sizes))  # the inference is under way
-        started = time.monotonic()
-        assert _healthz(server) == "OK\n"
-        with _connect(server) as other:
-            assert _recv(other)["action_horizon"] == 10
-        assert time.monotonic() - started < 2.0  # neither waited for the inference
-        assert _recv(slow)["actions"].shape == (10, 2)
+def test_healthz_and_other_clients_are_answered_while_an_inference_runs(
+    serve: Serve, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    server, built = serve()
+    inferring, release = threading.Event(), threading.Event()
+    infer = built[0]._chunks_impl
+
+    def held(requests: Any) -> list[np.ndarray]:
+        inferring.set()
+        assert release.wait(60), "the test never released the inference"
+        return infer(requests)
+
+    monkeypatch.setattr(built[0], "_chunks_impl", held)  # the inference runs until released
+    try:
+        with _connect(server) as slow:
+            slow.recv(timeout=20)
+            slow.send(_obs((0.0, 0.0)))
+            assert inferring.wait(20)  # the inference is under way, held there
+            assert _healthz(server) == "OK\n"  # answered while it is held
+            with _connect(server) as other:
+                assert _recv(other)["action_horizon"] == 10
+            release.set()
+            assert _recv(slow)["actions"].shape == (10, 2)
+    finally:
+        release.set()
 
 
 def test_an_error_is_a_text_frame_then_1011_and_the_others_keep_being_served(serve: Serve) -> None:

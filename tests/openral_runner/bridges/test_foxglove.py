@@ -217,7 +217,7 @@ def test_on_tick_never_blocks_when_the_worker_is_stalled(tmp_path: Path, sink_cl
 
     def stalled(item) -> None:
         entered.set()
-        release.wait(10)
+        release.wait(60)
         real_publish(item)
 
     sink._publish_tick = stalled
@@ -226,16 +226,13 @@ def test_on_tick_never_blocks_when_the_worker_is_stalled(tmp_path: Path, sink_cl
     assert entered.wait(5), "worker never picked up the first tick"
 
     n = 2000
-    worst = 0.0
-    t_start = time.perf_counter()
-    for i in range(1, n + 1):
-        t0 = time.perf_counter()
-        sink.on_tick(make_tick(i), world)
-        worst = max(worst, time.perf_counter() - t0)
-    total = time.perf_counter() - t_start
+    ticks = [make_tick(i) for i in range(1, n + 1)]
+    ticking = threading.Thread(target=lambda: [sink.on_tick(tick, world) for tick in ticks])
+    ticking.start()
+    ticking.join(30)  # microseconds each; an on_tick that waits for room waits for the release
+    assert not ticking.is_alive(), "on_tick blocked on the stalled worker"
+    assert sink.ticks_published == 0  # every on_tick returned while tick 0 was still held
     assert sink.dropped == n - 16  # the worker holds tick 0; the queue keeps the newest 16
-    assert worst < 0.05, f"on_tick blocked for {worst * 1e3:.1f} ms"
-    assert total / n < 0.001
     release.set()
     sink.close()
     assert sink.ticks_published == 1 + 16
@@ -483,7 +480,7 @@ def test_camera_images_do_not_wait_behind_a_stalled_tick_worker(tmp_path: Path, 
 
     def stalled(item) -> None:
         entered.set()
-        release.wait(10)
+        release.wait(60)
         real_publish(item)
 
     sink._publish_tick = stalled
