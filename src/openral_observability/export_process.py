@@ -11,13 +11,18 @@ and metrics the parent makes outside ticks (``cli.command``, counters, logs) are
 parent as usual; both processes carry the same resource.
 
 Protocol on the child's stdin: a 4-byte little-endian length, then a pickled message:
-``("data", spans, samples)`` or ``("flush",)``; the child answers a flush with one byte on
-stdout once its exporters have flushed. End of input means shut down: the child flushes and
-exits, within ``flush_timeout_s`` whatever the collector does. It ignores SIGINT and SIGTERM, so
+``("data", spans, samples)`` or ``("flush",)``. On stdout the child writes one byte once its
+exporters are installed (it is *ready*), and one byte per flush once its exporters have flushed.
+End of input means shut down: the child flushes and exits, within ``flush_timeout_s`` whatever
+the collector does. A child still starting when the parent shuts down (importing the SDK takes a
+second or more, far longer on a machine short of cores) is waited for up to
+:data:`STARTUP_ALLOWANCE_S` first, so a short run does not lose its telemetry to the child's
+start-up. It ignores SIGINT and SIGTERM, so
 a Ctrl-C or a service stop delivered to the whole process group still lets the parent's shutdown
 drain it, and it never outlives the parent: the kernel kills it when the parent dies (Linux's
-parent-death signal), even by SIGKILL. It runs at a lower priority (nice +10) than the runner: on
-a machine short of cores, the tick thread gets the CPU first.
+parent-death signal), even by SIGKILL. Once ready it runs at a lower priority (nice +10) than the
+runner: on a machine short of cores, the tick thread gets the CPU first. It starts at the runner's
+priority, so that its one-off start-up is not starved.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from typing import IO, Final
 
@@ -51,6 +57,10 @@ _log = structlog.get_logger(__name__)
 
 _HEADER: Final = struct.Struct("<I")
 _FLUSHED: Final = b"\x01"
+_READY: Final = b"\x02"
+STARTUP_ALLOWANCE_S: Final = 30.0
+"""How long after its start the child is waited for to become ready: its start-up is this
+machine's cost, not the collector's, so it does not count against a flush's bound."""
 SEND_INTERVAL_S: Final = 0.02
 """Records are sent at most this often (or when :data:`SEND_RECORDS` are buffered): one pickle and one
 write per batch of ticks, not per tick."""
@@ -82,6 +92,8 @@ class ExportProcess:
             stdout=subprocess.PIPE,
             env=os.environ.copy(),
         )
+        self._started_at = time.monotonic()
+        self._ready = False
         self._lock = threading.Lock()
         self._spans: list[SpanRecord] = []
         self._samples: list[MetricSample] = []
@@ -99,6 +111,17 @@ class ExportProcess:
     def running(self) -> bool:
         """Whether the child is still running."""
         return self._process.poll() is None
+
+    def startup_left_s(self) -> float:
+        """How much longer a shutdown may wait for the child to become ready (0 once it is)."""
+        if self._ready:
+            return 0.0
+        return max(0.0, self._started_at + STARTUP_ALLOWANCE_S - time.monotonic())
+
+    def wait_ready(self) -> bool:
+        """Wait, within :data:`STARTUP_ALLOWANCE_S` of its start, until the child is ready; whether it is."""
+        with self._lock:
+            return self._await_ready()
 
     def export(self, spans: list[SpanRecord], samples: list[MetricSample]) -> None:
         """Buffer one tick's records until the next :meth:`flush`."""
@@ -132,18 +155,18 @@ class ExportProcess:
         """Send what is buffered and wait until the child's exporters have flushed it."""
         self.send()
         with self._lock:
-            if not self._send(("flush",)):
+            if not self._await_ready(timeout_s) or not self._send(("flush",)):
                 return False
-            stdout = self._process.stdout
-            assert stdout is not None
-            ready, _, _ = select.select([stdout], [], [], timeout_s)
-            return bool(ready) and stdout.read(1) == _FLUSHED
+            return self._read_byte(timeout_s) == _FLUSHED
 
     def shutdown(self, timeout_s: float = 5.0) -> bool:
         """Send what is buffered, close the pipe and wait for the child to export and exit.
 
+        A child still starting is first waited for to become ready (:meth:`startup_left_s`).
+
         Returns:
-            ``True`` when the child exited cleanly within ``timeout_s``; otherwise it is killed.
+            ``True`` when the child exited cleanly within ``timeout_s`` of being ready; otherwise
+            it is killed.
         """
         self.send()
         with self._lock:
@@ -152,6 +175,7 @@ class ExportProcess:
             if stdin is not None and not stdin.closed:
                 with contextlib.suppress(OSError):  # a dead child has already closed its end
                     stdin.close()
+            self._await_ready()
         try:
             return self._process.wait(timeout_s) == 0
         except subprocess.TimeoutExpired:
@@ -162,6 +186,21 @@ class ExportProcess:
         finally:
             if self._process.stdout is not None:
                 self._process.stdout.close()
+
+    def _await_ready(self, limit_s: float | None = None) -> bool:
+        """Whether the child is ready, waiting for its ready byte within the start-up allowance (and ``limit_s``)."""
+        if not self._ready:
+            wait_s = self.startup_left_s() if limit_s is None else min(limit_s, self.startup_left_s())
+            self._ready = self._read_byte(wait_s) == _READY
+        return self._ready
+
+    def _read_byte(self, timeout_s: float) -> bytes:
+        """One byte of the child's stdout, or ``b""`` when none came within ``timeout_s`` (or it is gone)."""
+        stdout = self._process.stdout
+        if stdout is None or stdout.closed:
+            return b""
+        ready, _, _ = select.select([stdout], [], [], timeout_s)
+        return stdout.read(1) if ready else b""
 
     def _send(self, message: tuple[object, ...]) -> bool:
         stdin = self._process.stdin
@@ -190,8 +229,14 @@ def _read_exact(stream: IO[bytes], n: int) -> bytes | None:
     return data if data is not None and len(data) == n else None
 
 
-def serve(stdin: IO[bytes], stdout: IO[bytes], settings: str, flush_timeout_s: float = 5.0) -> int:
-    """The child's loop: install the exporters, export what arrives, flush and exit at end of input.
+def serve(
+    stdin: IO[bytes],
+    stdout: IO[bytes],
+    settings: str,
+    flush_timeout_s: float = 5.0,
+    on_ready: Callable[[], None] | None = None,
+) -> int:
+    """The child's loop: install the exporters, say it is ready, export what arrives, flush and exit at end of input.
 
     The final flush is bounded by ``flush_timeout_s``: with the collector unreachable, what is
     still buffered is dropped rather than retried for tens of seconds.
@@ -201,6 +246,10 @@ def serve(stdin: IO[bytes], stdout: IO[bytes], settings: str, flush_timeout_s: f
     providers = install(config)
     pipeline = SdkSpanPipeline.of(trace.get_tracer_provider().get_tracer(TRACER_NAME))
     sink = InProcessSink(pipeline)
+    stdout.write(_READY)
+    stdout.flush()
+    if on_ready is not None:
+        on_ready()
     while (header := _read_exact(stdin, _HEADER.size)) is not None:
         payload = _read_exact(stdin, _HEADER.unpack(header)[0])
         if payload is None:
@@ -232,6 +281,10 @@ NICENESS: Final = 10
 _PR_SET_PDEATHSIG: Final = 1
 
 
+def _lower_priority() -> None:
+    os.nice(NICENESS)
+
+
 def die_with_parent(parent_pid: int) -> None:
     """Ask the kernel to SIGKILL this process when its parent dies; exit now if it already has."""
     with contextlib.suppress(OSError, AttributeError):
@@ -246,9 +299,8 @@ def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     die_with_parent(int(sys.argv[2]))
-    os.nice(NICENESS)
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(file=sys.stderr))
-    code = serve(sys.stdin.buffer, sys.stdout.buffer, sys.argv[1], float(sys.argv[3]))
+    code = serve(sys.stdin.buffer, sys.stdout.buffer, sys.argv[1], float(sys.argv[3]), _lower_priority)
     os._exit(code)  # exporter threads still retrying must not hold the exit
 
 

@@ -85,7 +85,9 @@ class Telemetry:
         """Flush, then stop the exporters. Idempotent.
 
         Bounded by ``timeout_s``: an unreachable collector delays exit by at most that long,
-        after which what is still buffered is dropped with a warning.
+        after which what is still buffered is dropped with a warning. An export process still
+        starting is waited for first, within its start-up allowance
+        (:meth:`~openral_observability.export_process.ExportProcess.wait_ready`).
 
         Returns:
             ``True`` when everything was flushed and stopped in time.
@@ -106,6 +108,8 @@ class Telemetry:
                 provider.shutdown()
             return flushed
 
+        if self.export_process is not None:
+            self.export_process.wait_ready()  # its start-up is not the collector's: outside the bound
         return self._bounded(flush_and_stop, timeout_s)
 
     def _bounded(self, work: Callable[[], bool], timeout_s: float) -> bool:

@@ -6,6 +6,7 @@ import os
 import signal
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -102,6 +103,20 @@ def test_force_flush_delivers_while_the_process_runs(receiver: OTLPReceiver, con
         assert len(receiver.spans()) == 2
     finally:
         assert process.shutdown(timeout_s=20)
+
+
+def test_a_child_slow_to_start_is_waited_for_and_loses_nothing(
+    receiver: OTLPReceiver, config: TelemetryConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On a machine short of cores the child's imports can outlast a short run: shutdown waits for them."""
+    (tmp_path / "sitecustomize.py").write_text("import time\ntime.sleep(3.0)\n")  # runs first in the child
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")])))
+    process = ExportProcess(config)
+    process.export(_records(), [(semconv.METRIC_TICK_DURATION, 0.5, {semconv.ATTR_SKILL_ID: "probe"})])
+    assert process.startup_left_s() > 0  # still starting
+    assert process.shutdown(timeout_s=1.0)  # the second is counted from when it is ready
+    assert len(receiver.spans()) == 2
+    assert any(m.name == semconv.METRIC_TICK_DURATION for m in receiver.metrics())
 
 
 def test_an_interrupt_to_the_process_group_does_not_lose_the_buffer(

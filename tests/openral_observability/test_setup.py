@@ -179,6 +179,7 @@ def test_shutdown_is_bounded_when_the_collector_is_down() -> None:
         "from openral_observability.setup import setup\n"
         "h = setup(endpoint='http://127.0.0.1:9')\n"
         "tracer().start_span('lost').end()\n"
+        "assert h.export_process.wait_ready()\n"  # its start-up is waited for outside the bound
         "t = time.monotonic(); ok = h.shutdown(timeout_s=0.5)\n"
         "print(ok, round(time.monotonic() - t, 1))\n"
     )
