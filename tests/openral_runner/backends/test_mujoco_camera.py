@@ -259,9 +259,11 @@ def test_stamps_are_the_monotonic_time_of_the_physics_they_show(twin: MujocoTwin
     assert np.all(np.diff(stamps) > 0)
     assert seqs == sorted(set(seqs))
     # Real time: the simulated time between two frames is the monotonic time between their stamps.
-    # Measured within 3 ms (the twin catches up every 2 ms); 10 ms leaves room for a loaded machine.
+    # Measured within 3 ms on a quiet machine (the twin catches up every 2 ms) and 10.3 ms beside the
+    # whole suite on 2 cores: that is the twin's pacing. A stamp taken after the render or at the
+    # read instead of at the state copy would also carry the render's or the read's jitter.
     drift = np.abs(np.diff(sim) - np.diff(stamps))
-    assert drift.max() < 0.010, f"stamp vs simulated time drift {drift.max() * 1e3:.1f} ms"
+    assert drift.max() < 0.020, f"stamp vs simulated time drift {drift.max() * 1e3:.1f} ms"
     # A frame is read at most one render plus one period after its state was copied (~40 + 100 ms
     # here); 3 periods leave room for a render slowed by load.
     assert max(ages_ms) < 3 * 1e3 / fps
