@@ -169,7 +169,7 @@ def reversals_per_s(commands: np.ndarray, geometry: ActionGeometry) -> float | N
 
 def path_length(positions: np.ndarray) -> float:
     """The distance travelled through ``positions`` (``(steps, [effectors,] 3)``), summed over effectors."""
-    steps = np.diff(positions.reshape(len(positions), -1, 3), axis=0)
+    steps = np.diff(_by_effector(positions), axis=0)
     return float(np.linalg.norm(steps, axis=-1).sum())
 
 
@@ -177,8 +177,13 @@ def path_jerk_rms(positions: np.ndarray, control_hz: float) -> float | None:
     """RMS over steps and effectors of the norm of ``positions``' third finite difference over ``dt³`` (m/s³)."""
     if len(positions) < 4:
         return None
-    jerk = np.diff(positions.reshape(len(positions), -1, 3), n=3, axis=0) * control_hz**3
+    jerk = np.diff(_by_effector(positions), n=3, axis=0) * control_hz**3
     return float(np.sqrt(np.mean(np.sum(jerk**2, axis=-1))))
+
+
+def _by_effector(positions: np.ndarray) -> np.ndarray:
+    """``(steps, 3)`` or ``(steps, effectors, 3)`` positions as ``(steps, effectors, 3)``."""
+    return positions.reshape(len(positions), -1, 3)
 
 
 def summarize(episodes: Sequence[EpisodeResult]) -> dict[str, Any] | None:
